@@ -1,0 +1,151 @@
+"""Preflight validation of a predictions directory against reference sample metadata."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rigidbench.validate import (ERROR, WARNING, ValidationReport, format_report, main, read_reference_specs,
+                                 validate_predictions)
+from rigidbench.video import write_video
+
+pytest.importorskip("av")
+
+REF_META = {"resolution": [64, 36], "fps": 24, "frames": 49}
+
+
+def clip(n_frames: int, size=(64, 36)) -> np.ndarray:
+    """(T,H,W,3) uint8 frames with a brightness ramp, so the encoder sees real content."""
+    width, height = size
+    values = (np.arange(n_frames) * 4 % 256).astype(np.uint8)
+    return np.broadcast_to(values[:, None, None, None], (n_frames, height, width, 3)).copy()
+
+
+def make_data_dir(root, ids, meta=REF_META):
+    for example_id in ids:
+        (root / example_id).mkdir(parents=True)
+        (root / example_id / "metadata.json").write_text(json.dumps(meta))
+    (root / "not_a_sample").mkdir()  # no metadata.json: not expected
+    return root
+
+
+@pytest.fixture()
+def scenario(tmp_path):
+    ids = ["ex_good", "ex_cosmos", "ex_missing", "ex_bad", "ex_short", "ex_one_short", "ex_aspect", "ex_dup"]
+    data = make_data_dir(tmp_path / "data", ids)
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "ex_good.mp4", clip(49), fps=24)
+    write_video(pred / "ex_cosmos.mp4", clip(33), fps=16)  # 2.0 s at 16 Hz covers the span
+    (pred / "ex_bad.mp4").write_bytes(np.random.default_rng(0).bytes(3000))
+    write_video(pred / "ex_short.mp4", clip(24), fps=24)  # ends at 0.958 s
+    write_video(pred / "ex_one_short.mp4", clip(48), fps=24)  # ends at 1.958 s, half a frame is 1/48 s
+    write_video(pred / "ex_aspect.mp4", clip(49, size=(48, 36)), fps=24)
+    write_video(pred / "ex_dup.mp4", clip(49), fps=24)
+    write_video(pred / "ex_dup.webm", clip(49), fps=24)
+    write_video(pred / "stranger.mp4", clip(49), fps=24)
+    (pred / "ex_good.json").write_text("{}")  # a sidecar beside a clip is fine
+    (pred / "ex_missing.flv").write_bytes(b"FLV")
+    (pred / ".ex_good.tmp.mp4").write_bytes(b"")  # hidden temporaries are ignored
+    return pred, data
+
+
+def ids_of(report: ValidationReport, kind: str) -> set:
+    return {issue.example_id for issue in report.of_kind(kind)}
+
+
+def test_each_problem_is_reported(scenario):
+    pred, data = scenario
+    report = validate_predictions(pred, data)
+    assert set(report.references) == {"ex_good", "ex_cosmos", "ex_missing", "ex_bad", "ex_short",
+                                      "ex_one_short", "ex_aspect", "ex_dup"}
+    assert report.missing == ["ex_missing"]
+    assert ids_of(report, "undecodable") == {"ex_bad"}
+    assert ids_of(report, "too_short") == {"ex_short", "ex_one_short"}
+    assert ids_of(report, "duplicate") == {"ex_dup"}
+    assert ids_of(report, "aspect_ratio") == {"ex_aspect"}
+    extras = {issue.path.name for issue in report.of_kind("extra")}
+    assert extras == {"stranger.mp4"}
+    assert "ex_missing.flv" in report.of_kind("missing")[0].message
+    assert all(issue.severity == WARNING for issue in report.of_kind("extra") + report.of_kind("aspect_ratio"))
+    blocking = {issue.kind for issue in report.errors}
+    assert blocking == {"missing", "undecodable", "too_short", "duplicate"}
+    assert not report.ok
+    # The good clips produce no issue of their own.
+    assert not [i for i in report.issues if i.example_id in ("ex_good", "ex_cosmos") and i.kind != "extra"]
+    good = report.files[pred / "ex_good.mp4"]
+    assert (good.width, good.height, good.n_frames) == (64, 36, 49)
+    assert good.duration_s == pytest.approx(2.0) and good.fps_measured == pytest.approx(24.0)
+    cosmos = report.files[pred / "ex_cosmos.mp4"]
+    assert cosmos.fps_nominal == pytest.approx(16.0) and cosmos.duration_s == pytest.approx(2.0)
+    short = report.files[pred / "ex_short.mp4"]
+    assert short.n_frames == 24 and short.duration_s == pytest.approx(23 / 24)
+
+
+def test_exit_code_and_printed_report(scenario, capsys):
+    pred, data = scenario
+    assert main(pred, data) == 1
+    out = capsys.readouterr().out
+    assert "BLOCKED" in out
+    for name in ("ex_missing", "ex_bad.mp4", "ex_short.mp4", "ex_aspect.mp4", "stranger.mp4", "ex_dup"):
+        assert name in out
+
+
+def test_clean_predictions_pass(tmp_path, capsys):
+    data = make_data_dir(tmp_path / "data", ["a", "b"])
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "a.mp4", clip(49), fps=24)
+    write_video(pred / "b.mkv", clip(97), fps=24)  # longer clips are fine: cut at 49 frames
+    report = validate_predictions(pred, data)
+    assert report.ok and report.issues == [] and set(report.matched) == {"a", "b"}
+    assert main(pred, data) == 0
+    assert "OK: ready for evaluation" in capsys.readouterr().out
+
+
+def test_aspect_within_two_percent_is_not_flagged(tmp_path):
+    # Against a 65x36 reference (1.806): a 64x36 clip differs by 1.5%, a 68x36 clip by 4.6%.
+    data = make_data_dir(tmp_path / "data", ["a"], {"resolution": [65, 36], "fps": 24, "frames": 49})
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "a.mp4", clip(49), fps=24)
+    assert validate_predictions(pred, data).of_kind("aspect_ratio") == []
+    write_video(pred / "a.mp4", clip(49, size=(68, 36)), fps=24)
+    assert len(validate_predictions(pred, data).of_kind("aspect_ratio")) == 1
+
+
+def test_metadata_defaults_and_overrides(tmp_path):
+    data = make_data_dir(tmp_path / "data", ["plain"], meta={"task": "drop"})
+    (data / "short_ref").mkdir()
+    (data / "short_ref" / "metadata.json").write_text(json.dumps({"resolution": [64, 36], "fps": 16, "frames": 17}))
+    (data / "broken").mkdir()
+    (data / "broken" / "metadata.json").write_text("{not json")
+    report = ValidationReport(pred_dir=tmp_path, data_dir=data)
+    read_reference_specs(data, report, ref_fps=24.0, ref_frames=25)
+    plain = report.references["plain"]
+    assert (plain.width, plain.height, plain.fps, plain.frames) == (1280, 704, 24.0, 25)
+    assert report.references["short_ref"].span_s == pytest.approx(1.0)
+    assert "broken" not in report.references
+    assert [(i.kind, i.severity, i.example_id) for i in report.issues] == [("bad_metadata", ERROR, "broken")]
+
+
+def test_reference_span_follows_metadata(tmp_path):
+    # A reference of 25 frames at 24 fps only needs 1.0 s.
+    data = make_data_dir(tmp_path / "data", ["a"], {"resolution": [64, 36], "fps": 24, "frames": 25})
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "a.mp4", clip(25), fps=24)
+    assert validate_predictions(pred, data).ok
+    write_video(pred / "a.mp4", clip(24), fps=24)
+    assert validate_predictions(pred, data).of_kind("too_short")
+
+
+def test_missing_directories_block(tmp_path):
+    report = validate_predictions(tmp_path / "nope", tmp_path / "nodata")
+    assert not report.ok and report.errors[0].kind == "no_data"
+    data = make_data_dir(tmp_path / "data", ["a"])
+    report = validate_predictions(tmp_path / "nope", data)
+    assert [i.kind for i in report.errors] == ["no_predictions"]
+    assert "BLOCKED" in format_report(report)
