@@ -57,6 +57,48 @@ def cmd_simulate(args) -> int:
     return 1 if failures else 0
 
 
+def cmd_inputs(args) -> int:
+    from .benchmark import write_inputs
+
+    try:
+        out = write_inputs(args.data, args.out)
+    except FileNotFoundError as exc:
+        raise UserError(str(exc)) from None
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from .validate import main as validate_main
+
+    return validate_main(args.predictions, args.data)
+
+
+def cmd_evaluate(args) -> int:
+    from .evaluate import EvaluationError, evaluate
+
+    ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
+    out = args.out or Path("runs") / args.predictions.name
+    try:
+        summary = evaluate(args.predictions, args.data, out, perception=args.perception, ids=ids or None,
+                           limit=args.limit, model=args.model)
+    except EvaluationError as exc:
+        raise UserError(str(exc)) from None
+    overall = summary.results["overall"]
+    print(f"{summary.results['model']}: {len(summary.evaluated)} evaluated, {len(summary.reused)} unchanged "
+          f"(reused), {len(summary.failed)} failed -> {out}")
+    for name, stats in overall.items():
+        mean = "n/a" if stats["mean"] is None else f"{stats['mean']:.4f}"
+        print(f"  {name:12s} {mean:>10s}  (finite {stats['finite']}/{stats['n']})")
+    for metric, reason in summary.skipped_metrics.items():
+        print(f"  skipped {metric}: {reason}")
+    for sample_id, reason in summary.failed.items():
+        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
+    print("official result" if summary.official else
+          "not an official result: " + "; ".join(summary.results.get("why_not_official", [])))
+    return 1 if summary.failed else 0
+
+
 # -- parser --------------------------------------------------------------------------------------
 
 
@@ -85,6 +127,27 @@ def build_parser() -> argparse.ArgumentParser:
     _add_selection(p)
     p.add_argument("--out", type=Path, help="output directory (default data/<split>)")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("inputs", help="write inputs.jsonl: first frame, prompt and negative prompt per example")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory (default data/eval)")
+    p.add_argument("--out", type=Path, help="output file (default DATA/inputs.jsonl)")
+    p.set_defaults(func=cmd_inputs)
+
+    p = sub.add_parser("validate", help="fast preflight of a predictions directory before evaluation")
+    p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("evaluate", help="score predictions against the reference with the ten measurements")
+    p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files (predictions/MODEL)")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
+    p.add_argument("--perception", choices=("gt",), default="gt",
+                   help="gt: exact world state written by built-in predictors")
+    p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
+    p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
+    p.add_argument("--ids", nargs="+", metavar="ID")
+    p.add_argument("--limit", type=int)
+    p.set_defaults(func=cmd_evaluate)
     return parser
 
 
