@@ -46,12 +46,13 @@ def cmd_manifest(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from .blender.physics import simulate_rows
+    from .pipeline.simulate import simulate_rows
 
     reg, rows = _split_rows(args)
     out = args.out or DEFAULT_DATA / args.split
-    failures = simulate_rows(rows, reg, Path(out))
-    print(f"simulated {len(rows) - len(failures)} of {len(rows)} examples into {out}")
+    failures, skipped = simulate_rows(rows, reg, Path(out))
+    print(f"simulated {len(rows) - len(failures) - len(skipped)} of {len(rows)} examples into {out} "
+          f"({len(skipped)} already done)")
     for sample_id, reason in failures:
         print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
     return 1 if failures else 0
