@@ -18,6 +18,9 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install --quiet --upgrade pip
 	$(PIP) install --quiet "$(TORCH_SPEC)"
 	$(PIP) install --quiet -e ".[all]"
+	# LPIPS's linear-layer weights ship in the lpips package; install it without its torchvision
+	# dependency (the CPU torch wheel has no matching torchvision build here, and we don't need it).
+	$(PIP) install --quiet --no-deps "lpips==0.1.4"
 	@touch $(STAMP)
 
 setup: $(STAMP)

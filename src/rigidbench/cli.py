@@ -100,6 +100,22 @@ def cmd_evaluate(args) -> int:
     return 1 if summary.failed else 0
 
 
+def cmd_predict(args) -> int:
+    from .evaluate import EvaluationError
+    from .pipeline.predict import predict
+
+    ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
+    out = args.out or Path("predictions") / args.name
+    try:
+        written, failed = predict(args.name, args.data, out, args.severity, ids or None, args.limit)
+    except (KeyError, ValueError, EvaluationError) as exc:
+        raise UserError(exc.args[0]) from None
+    print(f"{args.name} (severity {args.severity}): wrote {len(written)} predictions to {out}")
+    for sample_id, reason in failed.items():
+        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
+    return 1 if failed else 0
+
+
 # -- parser --------------------------------------------------------------------------------------
 
 
@@ -129,10 +145,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output directory (default data/<split>)")
     p.set_defaults(func=cmd_simulate)
 
+    from .pipeline.render import add_render_commands
+
+    add_render_commands(sub)
+
     p = sub.add_parser("inputs", help="write inputs.jsonl: first frame, prompt and negative prompt per example")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory (default data/eval)")
     p.add_argument("--out", type=Path, help="output file (default DATA/inputs.jsonl)")
     p.set_defaults(func=cmd_inputs)
+
+    p = sub.add_parser("predict", help="run a built-in predictor (failure mode) over the reference examples")
+    p.add_argument("name", help="reference, static, slow, fast, delayed, gamma, camera-shake, camera-drift, "
+                                "background-wobble")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
+    p.add_argument("--out", type=Path, help="output directory (default predictions/NAME)")
+    p.add_argument("--severity", type=float, default=1.0, help="0 = the reference, 1 = strong (default 1)")
+    p.add_argument("--ids", nargs="+", metavar="ID")
+    p.add_argument("--limit", type=int)
+    p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("validate", help="fast preflight of a predictions directory before evaluation")
     p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files")

@@ -543,8 +543,10 @@ def check_decodable(path: str | Path) -> None:
 
 
 def write_video(path: str | Path, frames: np.ndarray, fps: float = REFERENCE_FPS, *, crf: int = 18,
-                times_s: np.ndarray | None = None, preset: str = "medium") -> Path:
+                times_s: np.ndarray | None = None, preset: str = "medium", lossless: bool = False) -> Path:
     """frames (T,H,W,3) uint8 RGB, H and W even; fps in Hz. Writes H.264 yuv420p (VP9 for .webm) atomically.
+
+    ``lossless`` writes H.264 in RGB with crf 0 (libx264rgb), which decodes to exactly ``frames``.
 
     With ``times_s`` (T,) seconds, strictly increasing, each frame gets that presentation time on
     a 1/90000 s time base (a variable-frame-rate file); otherwise frame k is shown at k / fps.
@@ -566,16 +568,17 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float = REFERENCE_FPS
         times_s = np.asarray(times_s, dtype=np.float64)
         if times_s.shape != (frames.shape[0],) or np.any(np.diff(times_s) <= 0):
             raise ValueError(f"{path}: times_s must be (T,) strictly increasing, got shape {times_s.shape}")
-    codec_name = "libvpx-vp9" if suffix == ".webm" else "libx264"
+    codec_name = "libvpx-vp9" if suffix == ".webm" else ("libx264rgb" if lossless else "libx264")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{suffix}")
     os.close(fd)
     try:
         with av.open(tmp_name, mode="w", format=_FORMAT_BY_SUFFIX[suffix]) as container:
             stream = container.add_stream(codec_name, rate=Fraction(fps).limit_denominator(100_000))
-            stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
-            options = {"crf": str(int(crf))}
-            options.update({"preset": preset} if codec_name == "libx264" else {"b": "0"})
+            stream.width, stream.height = width, height
+            stream.pix_fmt = "rgb24" if codec_name == "libx264rgb" else "yuv420p"
+            options = {"crf": "0" if lossless else str(int(crf))}
+            options.update({"preset": preset} if codec_name.startswith("libx264") else {"b": "0"})
             stream.options = options
             time_base = Fraction(1, 90_000) if times_s is not None else None
             if time_base is not None:

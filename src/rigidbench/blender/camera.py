@@ -1,0 +1,242 @@
+"""Camera framing, the visibility search over task rotations and azimuths, and the bpy camera.
+
+Paper, appendix "Scene Layout and Camera Selection":
+- the camera looks at the padded (0.2 m) joint bounding box of the actors and the support, from
+  10 degrees elevation with a 35 mm lens, at 1.4 x the box's largest extent (at least 1.4 m);
+  depth of field is off;
+- for each candidate task rotation in order, azimuths every 15 degrees inside the task's range
+  (task-relative, in the spec's seeded order) are tried; about 16 surface points per target mesh
+  (the active actors) are sampled and a ray is cast from the camera to each; the first
+  (rotation, azimuth) that sees at least 50% of the points is accepted, otherwise the best pair.
+
+"The support" in the framed box is the part of the support the task uses: the actors' footprint
+at the support's top-face height (the whole support can be a 2.6 m counter or a floor patch,
+which would shrink the objects to a few pixels). Rays see only geometry that renders: objects
+hidden from render are passed through (physics stand-ins under dressed meshes are also hidden in
+the view layer, which ``scene.ray_cast`` skips, so a coincident dressed surface is not missed).
+
+Only the functions that take a bpy scene or object import bpy (inside the function).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..config import CameraSettings
+from ..groundtruth import camera_model as cm
+from ..spec.build import body_aabb
+from ..spec.types import CameraSpec, SceneSpec
+
+log = logging.getLogger(__name__)
+
+CLIP_START_M = 0.01
+CLIP_END_M = 1000.0
+RAY_EPSILON_M = 1e-4  # a hit this close before the sampled point counts as reaching it
+MAX_PASS_THROUGH = 16  # render-hidden objects a ray may pass through
+
+
+# -- pure geometry ------------------------------------------------------------------------------
+
+
+def framing_box(spec: SceneSpec, padding_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (3,), hi (3,)) m: world AABB of the actors (frame 0) joined with their footprint on the
+    support's top face, padded by ``padding_m`` on every side."""
+    boxes = [body_aabb(b) for b in spec.world_bodies()]
+    lo = np.min([b[0] for b in boxes], axis=0)
+    hi = np.max([b[1] for b in boxes], axis=0)
+    top = spec.support.centre_m[2]
+    lo[2], hi[2] = min(lo[2], top), max(hi[2], top)
+    return lo - padding_m, hi + padding_m
+
+
+def framing(spec: SceneSpec, settings: CameraSettings) -> tuple[np.ndarray, float]:
+    """(target (3,) m, distance m): centre of the padded framing box and framing_multiplier x its
+    largest extent, at least min_distance_m."""
+    lo, hi = framing_box(spec, settings.bbox_padding_m)
+    distance = max(settings.framing_multiplier * float(np.max(hi - lo)), settings.min_distance_m)
+    return (lo + hi) / 2, distance
+
+
+def camera_spec(spec: SceneSpec, relative_azimuth_deg: float, settings: CameraSettings,
+                visibility: float) -> CameraSpec:
+    """The CameraSpec framing ``spec`` (at its task rotation) from a task-relative azimuth."""
+    target, distance = framing(spec, settings)
+    return CameraSpec(azimuth_deg=float((spec.task_rotation_deg + relative_azimuth_deg) % 360.0),
+                      relative_azimuth_deg=float(relative_azimuth_deg), elevation_deg=settings.elevation_deg,
+                      distance_m=float(distance), target_m=tuple(float(v) for v in target),
+                      lens_mm=settings.lens_mm, sensor_width_mm=settings.sensor_width_mm,
+                      visibility=float(visibility))
+
+
+def camera_pose(camera: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(R_c (3,3), t_c (3,) m): Blender camera-to-world pose of a CameraSpec."""
+    return cm.camera_pose(camera.target_m, camera.azimuth_deg, camera.elevation_deg, camera.distance_m)
+
+
+def sample_surface(vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """vertices (V,3) m, triangles (F,3) int. Returns (count,3) area-weighted uniform surface points."""
+    tri = vertices[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not np.isfinite(area).all() or area.sum() <= 0:
+        raise ValueError(f"cannot sample a surface with total area {area.sum()}")
+    face = rng.choice(len(tri), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return np.einsum("pk,pkj->pj", w, tri[face])
+
+
+# -- bpy ------------------------------------------------------------------------------------------
+
+
+def mesh_arrays(obj: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Evaluated mesh of a bpy object in its local frame: vertices (V,3) m, triangles (F,3) int."""
+    import bpy
+
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    evaluated = obj.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        mesh.calc_loop_triangles()
+        verts = np.zeros(len(mesh.vertices) * 3)
+        mesh.vertices.foreach_get("co", verts)
+        tris = np.zeros(len(mesh.loop_triangles) * 3, dtype=np.int64)
+        mesh.loop_triangles.foreach_get("vertices", tris)
+    finally:
+        evaluated.to_mesh_clear()
+    return verts.reshape(-1, 3), tris.reshape(-1, 3)
+
+
+def target_points(objects: Sequence[Any], count: int, seed: int) -> list[np.ndarray]:
+    """Local-frame surface points (count,3) per object, sampled with ``default_rng(seed)`` in order."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for obj in objects:
+        verts, tris = mesh_arrays(obj)
+        out.append(sample_surface(verts, tris, count, rng))
+    return out
+
+
+def _world(obj: Any, local: np.ndarray) -> np.ndarray:
+    m = np.array(obj.matrix_world)
+    return local @ m[:3, :3].T + m[:3, 3]
+
+
+def first_render_hit(scene: Any, depsgraph: Any, origin: np.ndarray, direction: np.ndarray,
+                     distance_m: float) -> tuple[Any, float]:
+    """First object that renders along a ray (unit ``direction``) within ``distance_m``:
+    (bpy Object or None, hit distance m or inf). Objects hidden from render are passed through."""
+    from mathutils import Vector
+
+    travelled = 0.0
+    start = np.asarray(origin, dtype=np.float64)
+    for _ in range(MAX_PASS_THROUGH):
+        hit, loc, _n, _i, obj, _m = scene.ray_cast(depsgraph, Vector(start), Vector(direction),
+                                                    distance=distance_m - travelled)
+        if not hit:
+            return None, math.inf
+        step = float(np.dot(np.array(loc) - start, direction))
+        travelled += step
+        if not obj.original.hide_render:
+            return obj.original, travelled
+        start = np.array(loc) + direction * 1e-6
+        travelled += 1e-6
+    return None, math.inf
+
+
+def visible_fraction(scene: Any, position_m: np.ndarray, targets: Sequence[Any],
+                     points_local: Sequence[np.ndarray]) -> float:
+    """Fraction of all targets' sample points (local (P,3) per target) reached by a ray from
+    ``position_m``: the first rendered hit is the target itself or lies beyond the point."""
+    import bpy
+
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    seen = total = 0
+    for obj, local in zip(targets, points_local):
+        for p in _world(obj, local):
+            d = p - position_m
+            dist = float(np.linalg.norm(d))
+            total += 1
+            hit, at = first_render_hit(scene, depsgraph, position_m, d / dist, dist + 1.0)
+            if hit is None or hit == obj or at >= dist - RAY_EPSILON_M:
+                seen += 1
+    return seen / max(total, 1)
+
+
+def pose_bodies(spec: SceneSpec, objects: dict[str, Any]) -> None:
+    """Place every actor's bpy object at its frame-0 world pose for ``spec.task_rotation_deg``."""
+    import bpy
+
+    for b in spec.world_bodies():
+        obj = objects[b.name]
+        obj.rotation_mode = "QUATERNION"
+        obj.location = b.position_m
+        obj.rotation_quaternion = b.quat_wxyz
+    bpy.context.view_layer.update()
+
+
+def search_camera(spec: SceneSpec, settings: CameraSettings, scene: Any, posed: dict[str, Any],
+                  targets: Callable[[], Sequence[Any]] | Sequence[Any]) -> SceneSpec:
+    """Visibility search (paper A.3). ``posed`` maps actor name -> bpy object that ``pose_bodies``
+    moves; ``targets`` are the rendered bpy objects of the active actors (in spec order). Returns
+    ``spec`` with ``task_rotation_deg`` and ``camera`` filled. Leaves the actors at the chosen pose."""
+    target_objs = list(targets() if callable(targets) else targets)
+    points = target_points(target_objs, settings.points_per_target, spec.seed)
+    best: tuple[float, SceneSpec, float] | None = None
+    tried = 0
+    for rotation in spec.rotation_candidates_deg[:settings.rotation_attempts]:
+        candidate = dataclasses.replace(spec, task_rotation_deg=float(rotation))
+        pose_bodies(candidate, posed)
+        target, distance = framing(candidate, settings)
+        for relative in candidate.azimuth_candidates_deg:
+            position = cm.camera_position(target, rotation + relative, settings.elevation_deg, distance)
+            fraction = visible_fraction(scene, position, target_objs, points)
+            tried += 1
+            if best is None or fraction > best[0]:
+                best = (fraction, candidate, relative)
+            if fraction >= settings.visibility_threshold:
+                log.debug("example %s: camera at rotation %.1f, azimuth %+.0f sees %.0f%% (%d tried)",
+                          spec.sample_id, rotation, relative, 100 * fraction, tried)
+                return dataclasses.replace(candidate, camera=camera_spec(candidate, relative, settings, fraction))
+    if best is None:
+        raise ValueError(f"example {spec.sample_id}: no rotation or azimuth candidates to search; "
+                         "check the task's camera_azimuth_deg ranges")
+    fraction, candidate, relative = best
+    log.warning("example %s: no camera reaches %.0f%% visibility; using the best pair (%.0f%%, rotation %.1f, "
+                "azimuth %+.0f)", spec.sample_id, 100 * settings.visibility_threshold, 100 * fraction,
+                candidate.task_rotation_deg, relative)
+    pose_bodies(candidate, posed)
+    return dataclasses.replace(candidate, camera=camera_spec(candidate, relative, settings, fraction))
+
+
+def add_camera(scene: Any, camera: CameraSpec, name: str = "camera") -> Any:
+    """Create the bpy camera for a CameraSpec (sensor fit horizontal, no depth of field) and make it
+    the scene camera; returns the camera object."""
+    import bpy
+    from mathutils import Matrix
+
+    data = bpy.data.cameras.new(name)
+    data.type = "PERSP"
+    data.lens = camera.lens_mm
+    data.sensor_width = camera.sensor_width_mm
+    data.sensor_fit = "HORIZONTAL"
+    data.shift_x = data.shift_y = 0.0
+    data.clip_start = CLIP_START_M
+    data.clip_end = CLIP_END_M
+    data.dof.use_dof = False
+    obj = bpy.data.objects.new(name, data)
+    scene.collection.objects.link(obj)
+    R, t = camera_pose(camera)
+    obj.matrix_world = Matrix(cm.pose_matrix(R, t).tolist())
+    scene.camera = obj
+    return obj
+
+
+__all__ = ["framing_box", "framing", "camera_spec", "camera_pose", "sample_surface", "mesh_arrays", "target_points",
+           "first_render_hit", "visible_fraction", "pose_bodies", "search_camera", "add_camera"]

@@ -1,0 +1,442 @@
+"""Cycles settings, scene dressing and per-frame passes for one example, in one Blender session.
+
+Per example (paper, appendix A.3-A.4):
+1. a geometry-only scene (actors at their frame-0 poses, support, floor and the environment) for
+   the camera search (``camera.search_camera``), which fixes the task rotation and the camera;
+2. ``physics.simulate`` on the resolved spec (Bullet, the same code as ``rigidbench simulate``);
+3. the simulated scene is dressed (procedural assets and environment when the assets package
+   provides them, else plain materials, a sky colour and a sun), the camera is added and every
+   frame is rendered from the rigid-body cache: first a data pass per frame (object index and Z
+   through the compositor into 32-bit EXR), then the RGB frames (PNG).
+
+The data passes are rendered separately with one sample and a 0.01 px pixel filter, so the index
+and Z passes sample every pixel at its centre (Cycles writes them from the first sample only,
+which the pixel filter otherwise jitters across the pixel); the RGB frames keep the full filter.
+Object indices: pass_index = k for the k-th actor (1..N, active objects and passive task geometry
+such as ramps, in spec order); the support and the environment keep index 0.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..config import RenderPreset, Registry
+from ..spec.types import SceneSpec
+
+log = logging.getLogger(__name__)
+
+ASSETS_DIR = Path(__file__).resolve().parents[1] / "assets"
+DATA_FILTER_WIDTH_PX = 0.01
+BEAUTY_FILTER_WIDTH_PX = 1.5  # Cycles' default Blackman-Harris width
+BACKGROUND_DEPTH_M = 1e9  # Cycles writes 1e10 where a ray leaves the scene; stored as +inf
+POSE_TOLERANCE_M = 1e-5
+DENOISE_PREFILTER = {"paper": "ACCURATE"}  # other presets use "FAST" (quicker, for previews and tests)
+DEVICE_CHOICES = ("auto", "cpu", "gpu")
+
+
+@dataclass(frozen=True)
+class RenderDevice:
+    """The Cycles device: kind "CPU", "OPTIX" or "CUDA", and the device names used."""
+
+    kind: str
+    names: tuple[str, ...]
+
+    @property
+    def is_gpu(self) -> bool:
+        return self.kind != "CPU"
+
+    def describe(self) -> str:
+        return f"{self.kind}: {', '.join(self.names)}" if self.names else self.kind
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "CPU"
+
+
+def select_device(request: str = "auto") -> RenderDevice:
+    """Pick the Cycles device: OptiX, else CUDA, else CPU for "auto"; "cpu" forces the CPU and
+    "gpu" raises RuntimeError when no GPU is found. Also sets Cycles' preferences accordingly."""
+    import bpy
+
+    if request not in DEVICE_CHOICES:
+        raise ValueError(f"unknown render device '{request}'; choose one of {', '.join(DEVICE_CHOICES)}")
+    if request != "cpu":
+        prefs = bpy.context.preferences.addons["cycles"].preferences
+        for kind in ("OPTIX", "CUDA"):
+            try:
+                devices = [d for d in prefs.get_devices_for_type(kind) if d.type == kind]
+            except (TypeError, ValueError, RuntimeError) as exc:  # this build lacks the backend
+                log.debug("Cycles %s backend unavailable: %s", kind, exc)
+                continue
+            if devices:
+                prefs.compute_device_type = kind
+                for d in prefs.devices:
+                    d.use = d.type == kind
+                return RenderDevice(kind, tuple(d.name for d in devices))
+        if request == "gpu":
+            raise RuntimeError("no OptiX or CUDA device is visible to Cycles; render with --device cpu or auto")
+    return RenderDevice("CPU", (f"{_cpu_name()} ({os.cpu_count()} threads)",))
+
+
+def configure_cycles(scene: Any, preset: RenderPreset, seed: int, device: RenderDevice,
+                     threads: int | None = None) -> None:
+    """Cycles settings shared by every frame (paper, table "Simulation and rendering configuration")."""
+    r, c = scene.render, scene.cycles
+    r.engine = "CYCLES"
+    r.resolution_x, r.resolution_y = preset.resolution
+    r.resolution_percentage = 100
+    r.pixel_aspect_x = r.pixel_aspect_y = 1.0
+    r.use_motion_blur = False
+    r.use_persistent_data = bool(preset.persistent_data)
+    r.film_transparent = False
+    r.use_border = False
+    if threads:
+        r.threads_mode, r.threads = "FIXED", int(threads)
+    else:
+        r.threads_mode = "AUTO"
+    c.device = "GPU" if device.is_gpu else "CPU"
+    c.seed = int(seed) % (2**31 - 1)
+    c.use_animated_seed = False
+    c.max_bounces = preset.max_bounces
+    c.diffuse_bounces = preset.diffuse_bounces
+    c.glossy_bounces = preset.glossy_bounces
+    c.transmission_bounces = preset.transmission_bounces
+    c.pixel_filter_type = "BLACKMAN_HARRIS"
+    r.image_settings.file_format = "PNG"
+    r.image_settings.color_mode = "RGB"
+    r.image_settings.color_depth = "8"
+    r.use_file_extension = True
+    r.use_overwrite = True
+    layer = scene.view_layers[0]
+    layer.use_pass_object_index = True
+    layer.use_pass_z = True
+
+
+def beauty_mode(scene: Any, preset: RenderPreset, device: RenderDevice) -> None:
+    """Settings for the RGB frames: the preset's samples, adaptive threshold and denoiser."""
+    c = scene.cycles
+    c.samples = preset.samples
+    c.use_adaptive_sampling = preset.adaptive_threshold is not None
+    if preset.adaptive_threshold is not None:
+        c.adaptive_threshold = preset.adaptive_threshold
+    c.use_denoising = bool(preset.denoise)
+    if preset.denoise:
+        c.denoiser = "OPTIX" if device.kind == "OPTIX" else "OPENIMAGEDENOISE"
+        c.denoising_prefilter = DENOISE_PREFILTER.get(preset.name, "FAST")
+        c.denoising_input_passes = "RGB_ALBEDO_NORMAL"
+    c.filter_width = BEAUTY_FILTER_WIDTH_PX
+    c.max_bounces = preset.max_bounces
+    scene.render.use_compositing = False
+
+
+def data_mode(scene: Any) -> None:
+    """Settings for the index and Z passes: one sample at each pixel centre, no light bounces."""
+    c = scene.cycles
+    c.samples = 1
+    c.use_adaptive_sampling = False
+    c.use_denoising = False
+    c.filter_width = DATA_FILTER_WIDTH_PX
+    c.max_bounces = 0
+    scene.render.use_compositing = True
+
+
+def add_pass_output(scene: Any, directory: Path) -> Any:
+    """Compositor: Render Layers IndexOB and Depth -> one 32-bit multilayer EXR per frame
+    (``directory/####.exr``, Blender frame number); returns the File Output node."""
+    scene.use_nodes = True
+    tree = scene.node_tree
+    layers = next((n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers"), None)
+    if layers is None:
+        layers = tree.nodes.new("CompositorNodeRLayers")
+    out = tree.nodes.new("CompositorNodeOutputFile")
+    out.base_path = str(directory) + os.sep
+    out.format.file_format = "OPEN_EXR_MULTILAYER"
+    out.format.color_depth = "32"
+    out.format.exr_codec = "ZIP"
+    out.layer_slots.clear()
+    out.layer_slots.new("index")
+    out.layer_slots.new("depth")
+    tree.links.new(layers.outputs["IndexOB"], out.inputs["index"])
+    tree.links.new(layers.outputs["Depth"], out.inputs["depth"])
+    return out
+
+
+def pass_file(directory: Path, frame: int) -> Path:
+    """EXR written by ``add_pass_output`` for Blender frame ``frame``."""
+    return Path(directory) / f"{frame:04d}.exr"
+
+
+def read_passes(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """One pass EXR -> (object index (H,W) int16, Z depth (H,W) float32 m, +inf where nothing is hit)."""
+    import OpenEXR
+
+    try:
+        channels = OpenEXR.File(str(path)).parts[0].channels
+        index = channels["index.V"].pixels
+        depth = np.array(channels["depth.V"].pixels, dtype=np.float32)
+    except (OSError, RuntimeError, KeyError) as exc:
+        raise RuntimeError(f"{path}: cannot read the index/depth passes ({exc}); the compositor output "
+                           "may be missing or truncated") from exc
+    depth[depth >= BACKGROUND_DEPTH_M] = np.inf
+    return np.rint(index).astype(np.int16), depth
+
+
+# -- dressing ------------------------------------------------------------------------------------
+
+
+@dataclass
+class Dressing:
+    """Rendered bpy object per actor (spec order) and what the environment provided."""
+
+    render_objects: dict[str, Any]
+    environment: Any = None
+    uses_assets: bool = False
+    hidden: list[str] = field(default_factory=list)
+
+
+def assets_available() -> tuple[bool, bool]:
+    """(object builders present, environment builder present), judged by the assets package files."""
+    return (ASSETS_DIR / "objects.py").is_file(), (ASSETS_DIR / "scenes.py").is_file()
+
+
+def _plain_material(name: str, rgb: tuple[float, float, float], roughness: float = 0.5) -> Any:
+    import bpy
+
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    mat.use_nodes = True
+    bsdf = mat.node_tree.nodes.get("Principled BSDF")
+    bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
+    bsdf.inputs["Roughness"].default_value = roughness
+    return mat
+
+
+def _actor_colour(k: int) -> tuple[float, float, float]:
+    hue = (0.61803398875 * k) % 1.0
+    return tuple(float(0.45 + 0.4 * np.cos(2 * np.pi * (hue + j / 3))) for j in range(3))  # type: ignore[return-value]
+
+
+def _default_lighting(scene: Any) -> None:
+    import bpy
+
+    world = bpy.data.worlds.new("rb_sky")
+    world.use_nodes = True
+    bg = world.node_tree.nodes.get("Background")
+    bg.inputs["Color"].default_value = (0.6, 0.68, 0.8, 1.0)
+    bg.inputs["Strength"].default_value = 0.8
+    scene.world = world
+    sun = bpy.data.lights.new("rb_sun", "SUN")
+    sun.energy = 3.0
+    sun.angle = 0.1
+    obj = bpy.data.objects.new("rb_sun", sun)
+    obj.rotation_euler = (0.7, 0.2, 0.6)
+    scene.collection.objects.link(obj)
+
+
+def _set_material(obj: Any, mat: Any) -> None:
+    obj.data.materials.clear()
+    obj.data.materials.append(mat)
+
+
+def _hide(obj: Any) -> None:
+    """Hide a physics stand-in from render and from ``scene.ray_cast`` (which skips objects hidden
+    in the view layer), so rays reach the dressed mesh that coincides with it."""
+    obj.hide_render = True
+    obj.hide_set(True)
+
+
+def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[str, Any]) -> Dressing:
+    """Give the physics scene its looks. ``objects`` maps body name (actors, "support", "floor") to
+    the physics bpy object. With the assets package, each actor gets its procedural model as a child
+    of its physics object (which is hidden from render) and the scene's environment is built (the
+    physics support and floor are then hidden from render); otherwise plain materials are used."""
+    from .physics import FLOOR_NAME, SUPPORT_NAME
+
+    have_objects, have_env = assets_available()
+    render_objects: dict[str, Any] = {}
+    hidden: list[str] = []
+    for k, body in enumerate(spec.bodies):
+        phys = objects[body.name]
+        if have_objects:
+            from ..assets import objects as asset_objects
+
+            name = f"{body.name}.render"
+            if body.ramp is not None:
+                obj = asset_objects.build_ramp(body.ramp, registry.material(body.ramp.material), name)
+            else:
+                obj = asset_objects.build_object(registry.object(body.asset), name)
+            obj.parent = phys
+            obj.matrix_parent_inverse.identity()
+            obj.location, obj.rotation_mode = (0.0, 0.0, 0.0), "QUATERNION"
+            obj.rotation_quaternion, obj.scale = (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+            _hide(phys)
+            hidden.append(body.name)
+            render_objects[body.name] = obj
+        else:
+            _set_material(phys, _plain_material(f"rb_actor_{k}", _actor_colour(k)))
+            render_objects[body.name] = phys
+    environment = None
+    if have_env:
+        from ..assets import scenes as asset_scenes
+
+        environment = asset_scenes.build_environment(registry.scene(spec.scene))
+        for name in (SUPPORT_NAME, FLOOR_NAME):
+            if name in objects and (name == FLOOR_NAME or spec.support.name in environment.supports):
+                _hide(objects[name])
+                hidden.append(name)
+    else:
+        _default_lighting(scene)
+    for name, rgb in ((SUPPORT_NAME, (0.55, 0.5, 0.45)), (FLOOR_NAME, (0.35, 0.35, 0.36))):
+        if name in objects and not objects[name].hide_render:
+            _set_material(objects[name], _plain_material(f"rb_{name}", rgb, 0.7))
+    for obj in scene.objects:
+        obj.pass_index = 0
+    for k, body in enumerate(spec.bodies, start=1):
+        render_objects[body.name].pass_index = k
+    import bpy
+
+    bpy.context.view_layer.update()
+    return Dressing(render_objects=render_objects, environment=environment, uses_assets=have_objects,
+                    hidden=hidden)
+
+
+# -- one example --------------------------------------------------------------------------------
+
+
+@dataclass
+class ExampleRender:
+    """What one example's Blender session produced (RGB frames are already on disk)."""
+
+    spec: SceneSpec  # with task rotation, camera and render preset resolved
+    simulation: Any  # physics.SimulationResult over all simulated frames
+    index: np.ndarray  # (T,H,W) int16 object index per pixel (0 = not an actor)
+    depth_m: np.ndarray  # (T,H,W) float32 Z pass, +inf where nothing is hit
+    device: RenderDevice
+    seconds: dict[str, float]
+    software: dict[str, str]
+    color_management: dict[str, Any]
+    uses_assets: bool
+
+
+def build_search_scene(spec: SceneSpec, registry: Registry) -> tuple[Any, dict[str, Any], Dressing]:
+    """Reset Blender; link every physics body's mesh (no rigid bodies) at its frame-0 pose and dress
+    the scene. Returns (scene, physics objects by name, dressing)."""
+    from .physics import scene_bodies
+    from .session import link_object, reset_scene
+
+    scene = reset_scene()
+    objects = {}
+    for body in scene_bodies(spec, registry):
+        obj = link_object(scene, body.name, body.mesh.vertices, body.mesh.faces)
+        obj.rotation_mode = "QUATERNION"
+        obj.location = body.position_m
+        obj.rotation_quaternion = body.quat_wxyz
+        objects[body.name] = obj
+    return scene, objects, dress_scene(scene, spec, registry, objects)
+
+
+def resolve_camera(spec: SceneSpec, registry: Registry) -> SceneSpec:
+    """Run the camera search (paper A.3) in a geometry-only scene; returns the resolved spec."""
+    from .camera import search_camera
+
+    scene, objects, dressing = build_search_scene(spec, registry)
+    active = [dressing.render_objects[b.name] for b in spec.active]
+    posed = {b.name: objects[b.name] for b in spec.bodies}
+    return search_camera(spec, registry.camera, scene, posed, active)
+
+
+def _check_poses(objects: Sequence[Any], positions_m: np.ndarray, frame: int, sample_id: str) -> None:
+    now = np.array([tuple(o.matrix_world.translation) for o in objects])
+    err = float(np.abs(now - positions_m[:, frame]).max()) if len(now) else 0.0
+    if err > POSE_TOLERANCE_M:
+        raise RuntimeError(f"example {sample_id}: rendered frame {frame} is {err:.2e} m away from the simulated "
+                           "trajectory; the rigid-body cache was invalidated between simulation and render")
+
+
+def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, frames_dir: Path, pass_dir: Path,
+                   device: str = "auto", threads: int | None = None,
+                   on_frame: Callable[[int, int], None] | None = None) -> ExampleRender:
+    """Camera search, simulation and render of one example in this process's Blender.
+
+    RGB frames go to ``frames_dir/00000.png ...`` and pass EXRs to ``pass_dir``; ``on_frame(done,
+    total)`` reports progress over the 2T renders (T data passes, then T RGB frames)."""
+    import bpy
+
+    from . import physics
+    from .camera import add_camera
+
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if spec.camera is None:
+        spec = resolve_camera(spec, registry)
+    seconds["camera_search"] = time.perf_counter() - t0
+    spec = _with_preset(spec, preset.name)
+    t1 = time.perf_counter()
+    sim = physics.simulate(spec, registry)
+    seconds["simulate"] = time.perf_counter() - t1
+    T = min(preset.frames, sim.frames)
+    t2 = time.perf_counter()
+    scene = bpy.context.scene
+    objects = {o.name: o for o in scene.objects}
+    dressing = dress_scene(scene, spec, registry, objects)
+    add_camera(scene, spec.camera)
+    chosen = select_device(device)
+    configure_cycles(scene, preset, spec.seed, chosen, threads)
+    pass_dir.mkdir(parents=True, exist_ok=True)
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    add_pass_output(scene, pass_dir)
+    seconds["setup"] = time.perf_counter() - t2
+    actors = [objects[b.name] for b in spec.bodies]
+    W, H = preset.resolution
+    index = np.zeros((T, H, W), np.int16)
+    depth = np.zeros((T, H, W), np.float32)
+    t3 = time.perf_counter()
+    data_mode(scene)
+    for f in range(T):
+        scene.frame_set(f + 1)
+        _check_poses(actors, sim.trajectory.positions_m, f, spec.sample_id)
+        bpy.ops.render.render(write_still=False)
+        index[f], depth[f] = read_passes(pass_file(pass_dir, f + 1))
+        if on_frame:
+            on_frame(f + 1, 2 * T)
+    seconds["passes"] = time.perf_counter() - t3
+    t4 = time.perf_counter()
+    beauty_mode(scene, preset, chosen)
+    for f in range(T):
+        scene.frame_set(f + 1)
+        scene.render.filepath = str(Path(frames_dir) / f"{f:05d}.png")
+        bpy.ops.render.render(write_still=True)
+        if on_frame:
+            on_frame(T + f + 1, 2 * T)
+    seconds["rgb"] = time.perf_counter() - t4
+    vs = scene.view_settings
+    return ExampleRender(
+        spec=spec, simulation=sim, index=index, depth_m=depth, device=chosen, seconds=seconds,
+        software={"blender": bpy.app.version_string, "blender_build": bpy.app.build_hash.decode(errors="replace")},
+        color_management={"view_transform": vs.view_transform, "look": vs.look, "exposure": vs.exposure,
+                          "gamma": vs.gamma, "display_device": scene.display_settings.display_device},
+        uses_assets=dressing.uses_assets)
+
+
+def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
+    import dataclasses
+
+    return dataclasses.replace(spec, render_preset=preset)
+
+
+__all__ = ["RenderDevice", "select_device", "configure_cycles", "beauty_mode", "data_mode", "add_pass_output",
+           "pass_file", "read_passes", "Dressing", "assets_available", "dress_scene", "ExampleRender",
+           "build_search_scene", "resolve_camera", "render_example", "DEVICE_CHOICES"]

@@ -1,0 +1,146 @@
+"""Shared pieces of the metrics: result type, nested means, pixel convention, camera geometry.
+
+Pixel convention (used by every metric, track and corner in RigidBench): image coordinates
+are (x, y) in pixels with the origin at the top-left corner of the image, so pixel (row i,
+column j) covers [j, j+1) x [i, i+1) and its centre is at x = j + 0.5, y = i + 0.5. The
+camera intrinsics K project camera points into these coordinates, so a centred principal
+point is (W/2, H/2). OpenCV functions that use integer pixel centres are shifted by 0.5 at
+the boundary.
+
+Camera convention: the pose (R_c, t_c) is camera-to-world in Blender's convention (the
+camera looks down its -Z axis, +Y is up). S = diag(1, -1, -1) converts computer-vision
+camera coordinates (X right, Y down, Z forward) to Blender camera coordinates, so a pixel
+(u, v) with depth d along the optical axis lies at world R_c S d K^-1 [u, v, 1] + t_c.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Converts computer-vision camera coordinates to Blender camera coordinates (and back).
+CV_TO_BLENDER = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class MetricResult:
+    """A clip-level score and, where one makes sense, its per-frame values (NaN = undefined)."""
+
+    value: float
+    per_frame: np.ndarray | None = None
+
+
+def finite_mean(x: np.ndarray) -> float:
+    """Mean of the finite entries of x; NaN when there are none."""
+    x = np.asarray(x, dtype=np.float64)
+    keep = np.isfinite(x)
+    return float(x[keep].mean()) if keep.any() else float("nan")
+
+
+def nested_mean(q: np.ndarray) -> MetricResult:
+    """q: (T, N) per-frame, per-actor values, non-finite = undefined. Returns the mean over
+    frames with >= 1 defined actor of the mean over that frame's defined actors, and the
+    (T,) per-frame actor means (NaN where no actor is defined)."""
+    q = np.asarray(q, dtype=np.float64)
+    if q.ndim != 2:
+        raise ValueError(f"nested_mean expects a (T, N) array, got shape {q.shape}")
+    defined = np.isfinite(q)
+    counts = defined.sum(axis=1)
+    sums = np.where(defined, q, 0.0).sum(axis=1)
+    per_frame = np.full(q.shape[0], np.nan)
+    np.divide(sums, counts, out=per_frame, where=counts > 0)
+    return MetricResult(finite_mean(per_frame), per_frame)
+
+
+def check_same_shape(name_a: str, a: np.ndarray, name_b: str, b: np.ndarray) -> None:
+    """Raise a ValueError naming both arrays when their shapes differ."""
+    if a.shape != b.shape:
+        raise ValueError(f"{name_a} has shape {a.shape} but {name_b} has shape {b.shape}; "
+                         "cut both clips to the common length and resolution before scoring")
+
+
+def sample_bilinear(image: np.ndarray, xy: np.ndarray, transform=None) -> np.ndarray:
+    """image: (H, W) float; xy: (M, 2) pixel coordinates (x, y), centres at +0.5. Returns (M,)
+    float64 bilinear samples; NaN outside [0, W] x [0, H] or where a used neighbour is NaN.
+
+    Within half a pixel of the border the nearest edge pixels are used (edge clamping).
+    `transform`, if given, maps the gathered float64 pixel values before interpolation, so
+    a per-pixel function of the image is sampled without computing it on the whole image."""
+    h, w = image.shape
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    out = np.full(len(xy), np.nan)
+    x, y = xy[:, 0], xy[:, 1]
+    inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+    if not inside.any():
+        return out
+    # Array-index coordinates: pixel centres at integers.
+    col = np.clip(x[inside] - 0.5, 0.0, w - 1.0)
+    row = np.clip(y[inside] - 0.5, 0.0, h - 1.0)
+    c0 = np.minimum(np.floor(col).astype(np.int64), max(w - 2, 0))
+    r0 = np.minimum(np.floor(row).astype(np.int64), max(h - 2, 0))
+    c1 = np.minimum(c0 + 1, w - 1)
+    r1 = np.minimum(r0 + 1, h - 1)
+    fc = col - c0
+    fr = row - r0
+    taps = [np.asarray(image[r, c], dtype=np.float64) for r, c in ((r0, c0), (r0, c1), (r1, c0), (r1, c1))]
+    if transform is not None:
+        taps = [transform(v) for v in taps]
+    v00, v01, v10, v11 = taps
+    # A neighbour with zero weight must not poison the sample with its NaN.
+    top = _lerp(v00, v01, fc)
+    bottom = _lerp(v10, v11, fc)
+    out[inside] = _lerp(top, bottom, fr)
+    return out
+
+
+def _lerp(a: np.ndarray, b: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """(1-f) a + f b, exact at f = 0 and f = 1 even when the unused end is NaN."""
+    res = (1.0 - f) * a + f * b
+    res = np.where(f == 0.0, a, res)
+    return np.where(f == 1.0, b, res)
+
+
+def unproject(xy: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R_c: np.ndarray,
+              t_c: np.ndarray) -> np.ndarray:
+    """xy: (M, 2) pixels; depth_m: (M,) along the optical axis; K (3,3); camera-to-world
+    R_c (3,3), t_c (3,) in Blender's camera convention. Returns (M, 3) world points in metres."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    homog = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    rays_cv = np.linalg.solve(np.asarray(K, dtype=np.float64), homog.T).T
+    points_cv = rays_cv * np.asarray(depth_m, dtype=np.float64)[:, None]
+    world_from_cv = np.asarray(R_c, dtype=np.float64) @ CV_TO_BLENDER
+    return points_cv @ world_from_cv.T + np.asarray(t_c, dtype=np.float64)
+
+
+def project(points_m: np.ndarray, K: np.ndarray, R_c: np.ndarray,
+            t_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """points_m: (M, 3) world points; K, R_c, t_c as in `unproject`. Returns (M, 2) pixel
+    coordinates and (M,) depth along the optical axis (positive in front of the camera)."""
+    points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    cv_from_world = CV_TO_BLENDER @ np.asarray(R_c, dtype=np.float64).T
+    cam = (points - np.asarray(t_c, dtype=np.float64)) @ cv_from_world.T
+    pix = cam @ np.asarray(K, dtype=np.float64).T
+    depth = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = pix[:, :2] / pix[:, 2:3]
+    return xy, depth
+
+
+def geometric_median(points: np.ndarray, tol: float = 1e-5, max_iter: int = 100) -> np.ndarray:
+    """points: (M, D) float. Returns the (D,) geometric median by Weiszfeld's algorithm started
+    at the mean, stopping when a step moves less than `tol` or after `max_iter` steps; NaN for M=0."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 0:
+        return np.full(points.shape[1], np.nan)
+    estimate = points.mean(axis=0)
+    for _ in range(max_iter):
+        dist = np.linalg.norm(points - estimate, axis=1)
+        # A point at the estimate gets a large finite weight instead of an infinite one.
+        weights = 1.0 / np.maximum(dist, 1e-12)
+        new = weights @ points / weights.sum()
+        step = np.linalg.norm(new - estimate)
+        estimate = new
+        if step < tol:
+            break
+    return estimate

@@ -1,0 +1,220 @@
+"""Depth metrics: clip-level disparity alignment, SI-MSE and ATE-3D (paper eqs. appendix-depth-fit,
+appendix-reconstruction, appendix-ate3d, appendix-si-mse).
+
+Reference depth is the Cycles Z pass, float32 (T, H, W) metres along the optical axis; a
+pixel is valid when its depth is finite and in (0, 100) m. Predicted disparity (T, h, w) is
+bilinearly resized to (H, W) when the grids differ (OpenCV INTER_LINEAR, half-pixel centres).
+One scale and shift map predicted disparity to reference inverse depth over every valid
+pixel of the clip; aligned disparities that are positive are inverted to depth. Frames are
+processed one at a time so a 49 x 704 x 1280 clip never needs a float64 copy of the clip.
+
+Which track points ATE-3D uses: the generated track of every point that is visible in both
+the generated and the reference clip at frame t (the perception rule "generated and
+reference visibility must both be true"), assigned to its actor by the actor index.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from rigidbench.metrics.common import MetricResult, finite_mean, geometric_median, sample_bilinear, unproject
+
+log = logging.getLogger(__name__)
+
+#: Reference depths at or beyond this many metres are background/sky and invalid.
+MAX_VALID_DEPTH_M = 100.0
+#: Actors whose reference start-to-end displacement exceeds this count as moving (A_m).
+MIN_DISPLACEMENT_M = 0.01
+
+
+@dataclass(frozen=True)
+class DepthAlignment:
+    """Least-squares fit scale * disparity + shift ~= 1 / Z_ref over `n_pixels` valid pixels."""
+
+    scale: float
+    shift: float
+    n_pixels: int
+
+
+def valid_reference_depth(depth_ref_m: np.ndarray) -> np.ndarray:
+    """depth_ref_m: (..., H, W) float metres. Returns bool of the same shape: finite and in (0, 100) m."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(depth_ref_m) & (depth_ref_m > 0) & (depth_ref_m < MAX_VALID_DEPTH_M)
+
+
+def disparity_frame(disparity: np.ndarray, t: int, shape_hw: tuple[int, int]) -> np.ndarray:
+    """disparity: (T, h, w) float. Returns frame t on the (H, W) grid (bilinearly resized if needed), dtype kept."""
+    frame = np.asarray(disparity[t])
+    if frame.shape != tuple(shape_hw):
+        import cv2
+
+        frame = cv2.resize(frame.astype(np.float32), (shape_hw[1], shape_hw[0]),
+                           interpolation=cv2.INTER_LINEAR)
+    return frame
+
+
+def _check_depth_inputs(disparity: np.ndarray, depth_ref_m: np.ndarray) -> None:
+    if depth_ref_m.ndim != 3 or disparity.ndim != 3 or disparity.shape[0] != depth_ref_m.shape[0]:
+        raise ValueError(f"disparity {disparity.shape} and reference depth {depth_ref_m.shape} must both be "
+                         "(T, H, W) with the same T; cut them to the common length first")
+
+
+def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray) -> DepthAlignment:
+    """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns the clip-level least-squares
+    (scale, shift) with scale * d + shift ~= 1/Z over pixels with finite d and Z in (0, 100) m."""
+    _check_depth_inputs(disparity, depth_ref_m)
+    shape_hw = depth_ref_m.shape[1:]
+    # Shifted one-pass sums in float64: the pivot (first frame's means) removes cancellation.
+    n = 0
+    pivot_d = pivot_y = None
+    s_d = s_y = s_dd = s_dy = 0.0
+    for t in range(depth_ref_m.shape[0]):
+        d = disparity_frame(disparity, t, shape_hw)
+        z = depth_ref_m[t]
+        valid = valid_reference_depth(z) & np.isfinite(d)
+        if not valid.any():
+            continue
+        dv = d[valid].astype(np.float64)
+        yv = 1.0 / z[valid].astype(np.float64)
+        if pivot_d is None:
+            pivot_d, pivot_y = float(dv.mean()), float(yv.mean())
+        dv -= pivot_d
+        yv -= pivot_y
+        n += dv.size
+        s_d += float(dv.sum())
+        s_y += float(yv.sum())
+        s_dd += float(dv @ dv)
+        s_dy += float(dv @ yv)
+    if n == 0:
+        log.warning("no pixel has both finite predicted disparity and valid reference depth; "
+                    "depth metrics are undefined for this clip")
+        return DepthAlignment(float("nan"), float("nan"), 0)
+    mean_d, mean_y = s_d / n, s_y / n
+    var_d = s_dd / n - mean_d * mean_d
+    cov_dy = s_dy / n - mean_d * mean_y
+    if not var_d > 0:
+        # Constant prediction: every scale fits equally well; the minimum-norm answer is scale 0.
+        log.warning("predicted disparity is constant over the valid pixels; aligned depth is constant")
+        return DepthAlignment(0.0, mean_y + pivot_y, n)
+    scale = cov_dy / var_d
+    shift = (mean_y + pivot_y) - scale * (mean_d + pivot_d)
+    return DepthAlignment(float(scale), float(shift), n)
+
+
+def aligned_depth(disparity_hw: np.ndarray, alignment: DepthAlignment) -> np.ndarray:
+    """disparity_hw: (...) float disparity. Returns (...) float64 depth 1/(s d + c) where that is positive, else NaN."""
+    aligned = alignment.scale * np.asarray(disparity_hw, dtype=np.float64) + alignment.shift
+    out = np.full(aligned.shape, np.nan)
+    positive = np.isfinite(aligned) & (aligned > 0)
+    np.divide(1.0, aligned, out=out, where=positive)
+    return out
+
+
+def si_mse(disparity: np.ndarray, depth_ref_m: np.ndarray,
+           alignment: DepthAlignment | None = None) -> MetricResult:
+    """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns the mean over frames with >= 1 valid
+    pixel of var(log Z^ - log Z) (mean of squares minus squared mean) and (T,) per-frame values."""
+    _check_depth_inputs(disparity, depth_ref_m)
+    if alignment is None:
+        alignment = fit_disparity_alignment(disparity, depth_ref_m)
+    t_len = depth_ref_m.shape[0]
+    per_frame = np.full(t_len, np.nan)
+    if alignment.n_pixels == 0:
+        return MetricResult(float("nan"), per_frame)
+    for t in range(t_len):
+        z = depth_ref_m[t]
+        d = disparity_frame(disparity, t, depth_ref_m.shape[1:])
+        valid = valid_reference_depth(z) & np.isfinite(d)
+        if not valid.any():
+            continue
+        aligned = alignment.scale * d[valid].astype(np.float64) + alignment.shift
+        positive = aligned > 0  # where the aligned depth 1/aligned exists
+        if not positive.any():
+            continue
+        # log(Z^) - log(Z) = -log(aligned * Z)
+        delta = -np.log(aligned[positive] * z[valid][positive].astype(np.float64))
+        per_frame[t] = float(np.mean(delta * delta) - np.mean(delta) ** 2)
+    return MetricResult(finite_mean(per_frame), per_frame)
+
+
+def reconstruct_actor_positions(gen_tracks: np.ndarray, visible: np.ndarray, actor_index: np.ndarray,
+                                n_actors: int, disparity: np.ndarray, shape_hw: tuple[int, int],
+                                alignment: DepthAlignment, K: np.ndarray, R_c: np.ndarray,
+                                t_c: np.ndarray, ref_points_m: np.ndarray | None = None
+                                ) -> tuple[np.ndarray, np.ndarray | None]:
+    """gen_tracks: (P, T, 2) px; visible: (P, T) bool; actor_index: (P,) int; disparity: (T, h, w).
+    Returns (N, T, 3) world positions in m: geometric median of each actor's unprojected visible
+    points, with depth sampled bilinearly from the aligned depth map; NaN where none is finite.
+    With ``ref_points_m`` (P, T, 3), the simulator positions of the same tracked points, also
+    returns the geometric median of exactly the points used at each actor-frame (else None)."""
+    t_len = gen_tracks.shape[1]
+    actor_index = np.asarray(actor_index)
+    out = np.full((n_actors, t_len, 3), np.nan)
+    ref = None if ref_points_m is None else np.full((n_actors, t_len, 3), np.nan)
+    if alignment.n_pixels == 0:
+        return out, ref
+    for t in range(t_len):
+        points_t = np.flatnonzero(visible[:, t])
+        if points_t.size == 0:
+            continue
+        xy = np.asarray(gen_tracks[points_t, t], dtype=np.float64)
+        # Aligned depth is evaluated only at the four pixels each sample reads.
+        depth_m = sample_bilinear(disparity_frame(disparity, t, shape_hw), xy,
+                                  transform=lambda d: aligned_depth(d, alignment))
+        world = unproject(xy, depth_m, K, R_c, t_c)
+        finite = np.isfinite(world).all(axis=1)
+        for a in range(n_actors):
+            mine = finite & (actor_index[points_t] == a)
+            if mine.any():
+                out[a, t] = geometric_median(world[mine])
+                if ref is not None:
+                    ref[a, t] = geometric_median(np.asarray(ref_points_m, np.float64)[points_t[mine], t])
+    return out, ref
+
+
+def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarray,
+          actor_index: np.ndarray, disparity: np.ndarray, depth_ref_m: np.ndarray, K: np.ndarray,
+          R_c: np.ndarray, t_c: np.ndarray, positions_m: np.ndarray,
+          alignment: DepthAlignment | None = None, ref_points_m: np.ndarray | None = None) -> MetricResult:
+    """gen_tracks: (P, T, 2) px; visibilities (P, T) bool; actor_index (P,) int in [0, N);
+    disparity (T, h, w); depth_ref_m (T, H, W) m; K (3,3); camera-to-world R_c (3,3), t_c (3,)
+    (Blender convention); positions_m (N, T, 3) reference actor positions over the same T.
+    ref_points_m (P, T, 3), optional: simulator world positions of the tracked points; when given,
+    the reference position of an actor-frame is the geometric median of the same points used for
+    the reconstruction (so a perfect prediction scores exactly zero, rather than the offset between
+    a surface-point median and the body origin), while the displacement scale still uses
+    positions_m. Returns RMSE over finite actor-frames / mean start-to-end displacement of actors moving
+    > 0.01 m (NaN if either set is empty), and (T,) per-frame RMS over actors / the same denominator."""
+    _check_depth_inputs(disparity, depth_ref_m)
+    positions_m = np.asarray(positions_m, dtype=np.float64)
+    n_actors, t_len = positions_m.shape[:2]
+    if gen_tracks.shape[1] != t_len or depth_ref_m.shape[0] != t_len:
+        raise ValueError(f"tracks ({gen_tracks.shape[1]} frames), depth ({depth_ref_m.shape[0]}) and reference "
+                         f"positions ({t_len}) must cover the same frames; cut them to the common length first")
+    actor_index = np.asarray(actor_index)
+    if actor_index.size and (actor_index.min() < 0 or actor_index.max() >= n_actors):
+        raise ValueError(f"actor_index must lie in [0, {n_actors}) to match positions_m; got "
+                         f"[{actor_index.min()}, {actor_index.max()}]")
+    if alignment is None:
+        alignment = fit_disparity_alignment(disparity, depth_ref_m)
+    visible = np.asarray(ref_visible, bool) & np.asarray(gen_visible, bool)
+    recon, ref_points_median = reconstruct_actor_positions(gen_tracks, visible, actor_index, n_actors, disparity,
+                                                           depth_ref_m.shape[1:], alignment, K, R_c, t_c,
+                                                           ref_points_m)
+    target = positions_m if ref_points_median is None else ref_points_median
+    sq_err = np.sum((recon - target) ** 2, axis=-1)  # (N, T), NaN outside V3
+    displacement = np.linalg.norm(positions_m[:, -1] - positions_m[:, 0], axis=-1)
+    moving = displacement > MIN_DISPLACEMENT_M
+    in_v3 = np.isfinite(sq_err)
+    per_frame = np.full(t_len, np.nan)
+    if not in_v3.any() or not moving.any():
+        return MetricResult(float("nan"), per_frame)
+    scale = float(displacement[moving].mean())
+    value = float(np.sqrt(sq_err[in_v3].mean())) / scale
+    counts = in_v3.sum(axis=0)
+    np.divide(np.where(in_v3, sq_err, 0.0).sum(axis=0), counts, out=per_frame, where=counts > 0)
+    per_frame = np.sqrt(per_frame) / scale
+    return MetricResult(value, per_frame)

@@ -1,0 +1,44 @@
+"""2D Absolute Trajectory Error over point tracks (paper eq. appendix-ate).
+
+Tracks are (P, T, 2) pixel coordinates (x, y) with centres at +0.5; a point-frame counts only
+when both the reference and the generated visibility flags are true, and every such pair has
+equal weight (no per-actor or per-frame averaging).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rigidbench.metrics.common import MetricResult, check_same_shape
+
+
+def check_tracks(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
+                 gen_visible: np.ndarray) -> None:
+    """Raise a ValueError unless tracks are (P, T, 2) and visibilities (P, T) bool of matching size."""
+    check_same_shape("reference tracks", ref_tracks, "generated tracks", gen_tracks)
+    check_same_shape("reference visibility", ref_visible, "generated visibility", gen_visible)
+    if ref_tracks.ndim != 3 or ref_tracks.shape[2] != 2 or ref_visible.shape != ref_tracks.shape[:2]:
+        raise ValueError(f"tracks must be (P, T, 2) with visibility (P, T); got {ref_tracks.shape} "
+                         f"and {ref_visible.shape}")
+    if ref_visible.dtype != bool or gen_visible.dtype != bool:
+        raise ValueError(f"visibility must be bool, got {ref_visible.dtype} and {gen_visible.dtype}")
+
+
+def joint_visibility(ref_visible: np.ndarray, gen_visible: np.ndarray) -> np.ndarray:
+    """ref_visible, gen_visible: (P, T) bool. Returns (P, T) bool: visible in both clips."""
+    return ref_visible & gen_visible
+
+
+def ate(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
+        gen_visible: np.ndarray, image_height: int) -> MetricResult:
+    """ref_tracks, gen_tracks: (P, T, 2) px; visibilities (P, T) bool. Returns the mean of
+    ||u^ - u|| / H over jointly visible, finite point-frames (NaN if none) and (T,) per-frame means."""
+    check_tracks(ref_tracks, gen_tracks, ref_visible, gen_visible)
+    err = np.linalg.norm(np.asarray(gen_tracks, np.float64) - np.asarray(ref_tracks, np.float64),
+                         axis=-1) / float(image_height)
+    keep = joint_visibility(ref_visible, gen_visible) & np.isfinite(err)
+    total = float(err[keep].mean()) if keep.any() else float("nan")
+    counts = keep.sum(axis=0)
+    per_frame = np.full(err.shape[1], np.nan)
+    np.divide(np.where(keep, err, 0.0).sum(axis=0), counts, out=per_frame, where=counts > 0)
+    return MetricResult(total, per_frame)

@@ -1,0 +1,161 @@
+"""Exact perception for predictions whose world state is known.
+
+Built-in predictors (the reference itself and the failure-mode suite) write, beside each video
+``<id>.mp4``, the world state it depicts as ``<id>.state.npz`` at the video's own frame times:
+
+- ``times_s`` (T,): frame timestamps of the video;
+- ``masks`` (T,N,H,W) bool: the N active actors of the reference, in reference order;
+- ``depth_m`` (T,H,W) float32: depth along the camera axis of what each pixel shows
+  (0, inf or >= 100 where there is none);
+- ``tracks`` (P,T,2) float32 and ``visibility`` (P,T) bool: where the reference's ground-truth
+  query points appear in the video;
+- ``bg_affine`` (T,2,3) float64: image-space motion of the background, mapping frame-0 pixel
+  coordinates to frame t (identity for a locked camera);
+- ``bg_flow`` (T,h,w,2) float32: additional local background displacement in pixels on a coarse
+  grid spanning the frame-0 image (zeros when the background moves rigidly).
+
+The backend reads that file and returns the same quantities the neural models estimate:
+disparity is 1/depth; background corners are detected on the video's frame 0 outside the frame-0
+actor masks and carried by the known background motion, with confidence 1 while a corner is in the
+image and not covered by an actor, else 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from .base import Perception, PerceptionError
+
+STATE_SUFFIX = ".state.npz"
+
+
+@dataclass
+class WorldState:
+    times_s: np.ndarray
+    masks: np.ndarray
+    depth_m: np.ndarray
+    tracks: np.ndarray
+    visibility: np.ndarray
+    bg_affine: np.ndarray
+    bg_flow: np.ndarray
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(tmp, **{f.name: getattr(self, f.name) for f in fields(self)})
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "WorldState":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return cls(**{f.name: z[f.name] for f in fields(cls)})
+        except (OSError, KeyError, ValueError) as exc:
+            raise PerceptionError(f"{path}: not a readable world-state file ({exc}); rerun the predictor "
+                                  "that wrote it") from None
+
+
+def state_path(video_path: str | Path) -> Path:
+    video_path = Path(video_path)
+    return video_path.with_name(video_path.stem + STATE_SUFFIX)
+
+
+def static_background(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Identity affine (T,2,3) and zero flow (T,2,2,2) for a locked camera and rigid background."""
+    affine = np.zeros((n_frames, 2, 3))
+    affine[:, 0, 0] = affine[:, 1, 1] = 1.0
+    return affine, np.zeros((n_frames, 2, 2, 2), np.float32)
+
+
+def reference_state(sample, frames: int | None = None) -> WorldState:
+    """The reference bundle's own world state (what the ``reference`` predictor depicts)."""
+    masks = sample.masks[:, sample.active_indices]
+    t = masks.shape[0] if frames is None else frames
+    tr = sample.tracks
+    affine, flow = static_background(t)
+    return WorldState(times_s=np.arange(t) / float(sample.fps), masks=masks[:t], depth_m=sample.depth[:t],
+                      tracks=tr["tracks"][:, :t], visibility=tr["visibility"][:, :t],
+                      bg_affine=affine, bg_flow=flow)
+
+
+def disparity_from_depth(depth_m: np.ndarray) -> np.ndarray:
+    """1/depth where depth is in (0, 100) m, NaN elsewhere. (T,H,W) -> (T,H,W) float32."""
+    depth = np.asarray(depth_m, dtype=np.float32)
+    valid = np.isfinite(depth) & (depth > 0) & (depth < 100)
+    out = np.full(depth.shape, np.nan, np.float32)
+    out[valid] = 1.0 / depth[valid]
+    return out
+
+
+def move_background_points(points: np.ndarray, affine: np.ndarray, flow: np.ndarray,
+                           size_wh: tuple[int, int]) -> np.ndarray:
+    """Carry frame-0 points (C,2) through background motion. Returns (C,T,2) pixel positions."""
+    points = np.asarray(points, np.float64)
+    moved = np.einsum("tij,cj->cti", affine[:, :, :2], points) + affine[None, :, :, 2]
+    if np.any(flow):
+        gh, gw = flow.shape[1:3]
+        w, h = size_wh
+        gx = np.clip(points[:, 0] / w * (gw - 1), 0, gw - 1)
+        gy = np.clip(points[:, 1] / h * (gh - 1), 0, gh - 1)
+        x0, y0 = np.floor(gx).astype(int), np.floor(gy).astype(int)
+        x1, y1 = np.minimum(x0 + 1, gw - 1), np.minimum(y0 + 1, gh - 1)
+        fx, fy = (gx - x0)[None, :, None], (gy - y0)[None, :, None]
+        f = (flow[:, y0, x0] * (1 - fx) * (1 - fy) + flow[:, y0, x1] * fx * (1 - fy)
+             + flow[:, y1, x0] * (1 - fx) * fy + flow[:, y1, x1] * fx * fy)  # (T,C,2)
+        moved = moved + np.transpose(f, (1, 0, 2))
+    return moved
+
+
+def background_confidence(bg_tracks: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """1 where a corner lies in the image and outside every actor mask, else 0. Returns (C,T)."""
+    t, _, h, w = masks.shape
+    any_actor = masks.any(axis=1)
+    x = np.floor(bg_tracks[..., 0]).astype(int)
+    y = np.floor(bg_tracks[..., 1]).astype(int)
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    conf = np.zeros(bg_tracks.shape[:2], np.float32)
+    for k in range(t):
+        ok = inside[:, k]
+        conf[ok, k] = (~any_actor[k, y[ok, k], x[ok, k]]).astype(np.float32)
+    return conf
+
+
+class GroundTruthBackend:
+    """Exact perception from the world state written by a built-in predictor."""
+
+    name = "gt"
+    version = "1"
+
+    def perceive(self, sample, video, prediction_path: Path) -> Perception:
+        from ..metrics.background import detect_background_corners
+
+        path = state_path(prediction_path)
+        if not path.exists():
+            raise PerceptionError(
+                f"{prediction_path}: no world state ({path.name}) beside the video. `--perception gt` scores only "
+                "predictions from built-in predictors (rigidbench predict ...); use `--perception neural` "
+                "for your own model's videos")
+        state = WorldState.load(path)
+        n = state.times_s.shape[0]
+        h, w = state.masks.shape[2:]
+        if video.frames.shape[1:3] != (h, w):
+            raise PerceptionError(f"{path}: world state is {w}x{h} but the video is "
+                                  f"{video.frames.shape[2]}x{video.frames.shape[1]}; rerun the predictor")
+        if n != video.n_frames or not np.allclose(state.times_s, video.times_s, atol=1e-3):
+            raise PerceptionError(f"{path}: world state has {n} frames but {prediction_path.name} decodes to "
+                                  f"{video.n_frames} (or different timestamps); rerun the predictor")
+        active = state.masks.shape[1]
+        if active != len(sample.active_indices):
+            raise PerceptionError(f"{path}: world state has {active} actors, reference {sample.sample_id} has "
+                                  f"{len(sample.active_indices)} active actors")
+        corners = detect_background_corners(video.frames[0], state.masks[0])
+        bg_tracks = move_background_points(corners, state.bg_affine, state.bg_flow, (w, h)).astype(np.float32)
+        return Perception(
+            times_s=np.asarray(state.times_s, np.float64), masks=state.masks.astype(bool),
+            tracks=state.tracks.astype(np.float32), visibility=state.visibility.astype(bool),
+            track_actor=np.asarray(sample.track_active_index, dtype=np.int64),
+            disparity=disparity_from_depth(state.depth_m), bg_tracks=bg_tracks,
+            bg_confidence=background_confidence(bg_tracks, state.masks))

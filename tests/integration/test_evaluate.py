@@ -1,0 +1,86 @@
+"""End to end at the `test` preset: render -> predict (built-in) -> evaluate with gt perception."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import requires_bpy
+
+from rigidbench import manifest
+from rigidbench.config import registry
+from rigidbench.evaluate import FeatureNets, evaluate
+from rigidbench.pipeline.predict import predict
+
+pytestmark = [pytest.mark.integration, requires_bpy]
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    from rigidbench.pipeline.render import render_to_bundle
+
+    reg = registry()
+    root = tmp_path_factory.mktemp("data")
+    rows = manifest.eval_rows(reg)
+    for sample_id in ("00015", "00020"):  # free fall, ramp collision
+        row = next(r for r in rows if r.sample_id == sample_id)
+        render_to_bundle(row, reg, reg.preset("test"), root)
+    return root / "eval"
+
+
+def _run(data_dir, tmp_path, name, severity=1.0):
+    preds = tmp_path / "predictions" / name
+    written, failed = predict(name, data_dir, preds, severity, progress=False)
+    assert not failed and len(written) == 2
+    return evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), progress=False)
+
+
+def test_reference_against_itself_is_perfect(data_dir, tmp_path):
+    summary = _run(data_dir, tmp_path, "reference")
+    assert not summary.failed and len(summary.evaluated) == 2
+    overall = summary.results["overall"]
+    assert overall["iou"]["mean"] == 1.0 and overall["ssim"]["mean"] == 1.0
+    for name in ("centroid_l2", "chamfer", "ate", "si_mse", "bgdrift"):
+        assert overall[name]["mean"] == pytest.approx(0.0, abs=1e-9), name
+    # Not exactly 0: depth is sampled bilinearly between pixels of a 256x144 Z pass near object edges.
+    assert overall["ate3d"]["mean"] == pytest.approx(0.0, abs=5e-3)
+    assert overall["ate3d"]["finite"] == 2
+    # Measurements without their networks are reported as skipped, and the run is not official.
+    assert summary.results["official"] is False and "lpips" in summary.results["skipped_metrics"]
+    record = json.loads((summary.out_dir / "examples" / "00015.json").read_text())
+    assert record["task"] == "free_fall" and record["metrics"]["lpips"] is None
+    arrays = np.load(summary.out_dir / "examples" / "00015.npz")
+    assert arrays["iou"].shape == (12,)
+    run = json.loads((summary.out_dir / "run.json").read_text())
+    assert run["perception"]["backend"] == "gt" and len(run["data_hash"]) == 64
+
+
+def test_unchanged_inputs_are_reused_and_changed_ones_recomputed(data_dir, tmp_path):
+    first = _run(data_dir, tmp_path, "reference")
+    second = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(),
+                      progress=False)
+    assert second.reused == ["00015", "00020"] and not second.evaluated
+    # Replace one prediction with a different failure mode: only that example is recomputed.
+    predict("static", data_dir, tmp_path / "predictions" / "reference", 1.0, ids=["00020"], progress=False)
+    third = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(),
+                     progress=False)
+    assert third.reused == ["00015"] and third.evaluated == ["00020"]
+
+
+def test_bad_example_is_reported_and_others_continue(data_dir, tmp_path):
+    preds = tmp_path / "predictions" / "broken"
+    predict("reference", data_dir, preds, 0.0, progress=False)
+    (preds / "00015.mp4").write_bytes(b"not a video")
+    summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), progress=False)
+    assert list(summary.failed) == ["00015"] and summary.evaluated == ["00020"]
+    assert "00015" in json.loads((summary.out_dir / "results.json").read_text())["failed"]
+
+
+def test_failure_modes_move_metrics_in_the_expected_direction(data_dir, tmp_path):
+    static = _run(data_dir, tmp_path, "static").results["overall"]
+    assert static["iou"]["mean"] < 0.9 and static["ate"]["mean"] > 0.01 and static["ate3d"]["mean"] > 0.1
+    shake = _run(data_dir, tmp_path, "camera-shake").results["overall"]
+    wobble = _run(data_dir, tmp_path, "background-wobble").results["overall"]
+    # Coherent camera shake is absorbed by the similarity transform; local wobble is not.
+    assert wobble["bgdrift"]["mean"] > 3 * max(shake["bgdrift"]["mean"], 1e-4)
+    gamma = _run(data_dir, tmp_path, "gamma").results["overall"]
+    assert gamma["ssim"]["mean"] < 0.99 and gamma["ate3d"]["mean"] == pytest.approx(0.0, abs=5e-3)

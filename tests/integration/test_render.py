@@ -1,0 +1,364 @@
+"""Render stage at the `test` preset: one eval example per task, checked against Blender ray casts.
+
+The module fixture renders each bundle in this process and, while that example's Blender scene is
+still loaded, ray-casts every pixel centre at the first and last frame, so masks and depth can be
+compared with the simulated geometry (a ray cast does not share Cycles' code path).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import make_spec, object_body, ramp_body, requires_bpy
+from rigidbench import manifest
+from rigidbench.blender.camera import framing
+from rigidbench.config import registry as load_registry
+from rigidbench.groundtruth import bundle as B
+from rigidbench.groundtruth import camera_model as cm
+from rigidbench.groundtruth.contacts import quat_to_matrix
+from rigidbench.spec.types import CameraSpec
+
+pytestmark = [pytest.mark.integration, requires_bpy]
+
+QUALITY = "test"
+SRC = str(Path(__file__).resolve().parents[2] / "src")
+
+
+def _raycast(sample: B.Sample, frames: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Object index (pass_index of the first rendered hit) and axial depth per pixel centre, from
+    Blender's own BVH on the currently loaded scene. Returns frame -> ((H,W) int, (H,W) float)."""
+    import bpy
+
+    from rigidbench.blender.camera import first_render_hit
+
+    scene = bpy.context.scene
+    R, t = sample.camera_pose
+    W, H = sample.resolution
+    rows, cols = np.mgrid[0:H, 0:W]
+    rays = cm.pixel_rays(sample.K, R, np.stack([cols, rows], -1).astype(float))
+    out = {}
+    for f in frames:
+        scene.frame_set(f + 1)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        index = np.zeros((H, W), int)
+        depth = np.full((H, W), np.inf)
+        for y in range(H):
+            for x in range(W):
+                d = rays[y, x]
+                n = float(np.linalg.norm(d))
+                obj, dist = first_render_hit(scene, depsgraph, t, d / n, 1e4)
+                if obj is not None:
+                    index[y, x] = obj.pass_index
+                    depth[y, x] = dist / n  # rays have unit axial component
+        out[f] = (index, depth)
+    return out
+
+
+@pytest.fixture(scope="module")
+def reg():
+    return load_registry()
+
+
+@pytest.fixture(scope="module")
+def task_rows(reg):
+    first = {}
+    for row in manifest.rows("eval", reg):
+        first.setdefault(row.task, row)
+    return first
+
+
+@pytest.fixture(scope="module")
+def rendered(reg, task_rows, tmp_path_factory):
+    """task -> (bundle path, ray casts at the first and last frame)."""
+    from rigidbench.pipeline.render import render_to_bundle
+
+    data = tmp_path_factory.mktemp("data")
+    out = {}
+    for task, row in sorted(task_rows.items()):
+        path = render_to_bundle(row, reg, reg.preset(QUALITY), data)
+        sample = B.Sample(path)
+        out[task] = (path, _raycast(sample, [0, sample.n_frames - 1]))
+    return out
+
+
+def test_each_task_renders_a_valid_bundle(rendered, reg, task_rows):
+    preset = reg.preset(QUALITY)
+    assert sorted(rendered) == sorted(reg.tasks)
+    for task, (path, _) in rendered.items():
+        assert B.check_bundle(path) == [], task
+        s = B.Sample(path)
+        W, H = preset.resolution
+        assert s.frames.shape == (preset.frames, H, W, 3) and s.frames.dtype == np.uint8
+        assert s.masks.shape == (preset.frames, len(s.spec.bodies), H, W)
+        assert s.depth.dtype == np.float32
+        assert s.metadata["preset"] == QUALITY and s.metadata["render"]["device_kind"] == "CPU"
+        assert s.prompt and s.prompt == s.spec.prompt == (path / B.PROMPT_FILE).read_text().strip()
+        assert s.sample_id == task_rows[task].sample_id and s.task == task
+        assert not (path.parent / f".{path.name}.tmp").exists()
+        # every active actor is in view at frame 0
+        for a in s.active_indices:
+            assert s.masks[0, a].any(), f"{task}: actor {s.actor_names[a]} not visible at frame 0"
+
+
+def test_camera_follows_the_paper_rule(rendered, reg):
+    cfg = reg.camera
+    for task, (path, _) in rendered.items():
+        s = B.Sample(path)
+        spec, cam = s.spec, s.spec.camera
+        assert spec.task_rotation_deg in spec.rotation_candidates_deg
+        assert cam.relative_azimuth_deg in spec.azimuth_candidates_deg
+        assert math.isclose((spec.task_rotation_deg + cam.relative_azimuth_deg) % 360, cam.azimuth_deg)
+        assert cam.elevation_deg == 10.0 and cam.lens_mm == 35.0
+        target, distance = framing(spec, cfg)
+        assert cam.distance_m == pytest.approx(distance) and cam.distance_m >= 1.4
+        np.testing.assert_allclose(cam.target_m, target)
+        # the camera looks at the target: it projects onto the principal point, distance_m away
+        R, t = s.camera_pose
+        uv, z = cm.project(np.array(cam.target_m), s.K, R, t)
+        np.testing.assert_allclose(uv, [s.K[0, 2], s.K[1, 2]], atol=1e-6)
+        assert z == pytest.approx(cam.distance_m)
+        np.testing.assert_allclose(t[2] - cam.target_m[2], cam.distance_m * math.sin(math.radians(10)), atol=1e-9)
+        assert s.K[0, 0] == pytest.approx(35.0 / 36.0 * s.resolution[0])
+
+
+def test_masks_agree_with_ray_cast(rendered):
+    for task, (path, casts) in rendered.items():
+        s = B.Sample(path)
+        for f, (index, _) in casts.items():
+            rendered_index = np.zeros(index.shape, int)
+            for k in range(s.masks.shape[1]):
+                rendered_index[s.masks[f, k]] = k + 1
+            agree = float((rendered_index == index).mean())
+            assert agree >= 0.99, f"{task} frame {f}: masks agree with the ray cast on {agree:.4f} of pixels"
+            for k in range(s.masks.shape[1]):  # each actor's own pixels agree too
+                hit = index == k + 1
+                if hit.sum() >= 20:
+                    iou = (hit & s.masks[f, k]).sum() / (hit | s.masks[f, k]).sum()
+                    assert iou >= 0.9, f"{task} frame {f} actor {k}: IoU {iou:.3f}"
+
+
+def test_depth_agrees_with_ray_cast(rendered):
+    for task, (path, casts) in rendered.items():
+        s = B.Sample(path)
+        for f, (_, depth) in casts.items():
+            ref = s.depth[f]
+            both = np.isfinite(depth) & np.isfinite(ref)
+            assert (np.isfinite(depth) == np.isfinite(ref)).mean() >= 0.99
+            err = np.abs(depth[both] - ref[both])
+            assert err.max() < 1e-3, f"{task} frame {f}: depth differs by up to {err.max() * 1000:.2f} mm"
+
+
+def test_track_points_start_inside_their_masks(rendered):
+    total = 0
+    for task, (path, _) in rendered.items():
+        s = B.Sample(path)
+        tr = s.tracks
+        total += tr.n_points
+        assert (tr.points_per_actor[[k for k, r in enumerate(s.roles) if r != "active"]] == 0).all()
+        assert (tr.points_per_actor <= 20).all()
+        qx, qy = tr.query_pixels[:, 0], tr.query_pixels[:, 1]
+        assert s.masks[0, tr.actor_index, qy, qx].all(), task
+        np.testing.assert_allclose(tr.tracks_px[:, 0], tr.query_pixels, atol=1e-3)
+        assert tr.visibility[:, 0].all(), task
+        # query pixels are unique per actor and lie in the 3-pixel erosion: the disk around each is inside the mask
+        for k in np.unique(tr.actor_index):
+            q = tr.query_pixels[tr.actor_index == k]
+            assert len({tuple(p) for p in q}) == len(q)
+            for dx, dy in ((3, 0), (-3, 0), (0, 3), (0, -3), (2, 2), (-2, -2)):
+                assert s.masks[0, k, q[:, 1] + dy, q[:, 0] + dx].all()
+    assert total >= 40
+
+
+def test_tracks_follow_the_rendered_surface(rendered):
+    """Unproject the rendered depth at each visible track position: the point found there, moved
+    back into the actor's body frame by the simulated pose, is the tracked body point."""
+    errors = []
+    for task, (path, _) in rendered.items():
+        s = B.Sample(path)
+        tr, traj = s.tracks, s.trajectory
+        R_c, t_c = s.camera_pose
+        rot = quat_to_matrix(traj.quat_wxyz)
+        for f in range(s.n_frames):
+            vis = np.flatnonzero(tr.visibility[:, f])
+            if not len(vis):
+                continue
+            uv = tr.tracks_px[vis, f].astype(float)
+            px = np.rint(uv).astype(int)
+            world = cm.unproject(uv, s.depth[f, px[:, 1], px[:, 0]], s.K, R_c, t_c)
+            a = tr.actor_index[vis]
+            body = np.einsum("pji,pj->pi", rot[a, f], world - traj.positions_m[a, f])
+            errors.append(np.linalg.norm(body - tr.points_body_m[vis], axis=1))
+    errors = np.concatenate(errors)
+    assert np.median(errors) < 0.003 and np.percentile(errors, 90) < 0.01, (np.median(errors), errors.max())
+
+
+def test_trajectory_is_the_simulation_of_the_resolved_spec(rendered, reg):
+    from rigidbench.blender.physics import simulate
+
+    path, _ = rendered["free_fall"]
+    s = B.Sample(path)
+    sim = simulate(s.spec, reg)
+    np.testing.assert_array_equal(s.trajectory.positions_m, sim.trajectory.positions_m[:, :s.n_frames])
+    z = s.trajectory.positions_m[0, :, 2]
+    assert z[0] > z[-1]  # it falls
+    frame0 = s.spec.world_bodies()[0].position_m
+    np.testing.assert_allclose(s.trajectory.positions_m[0, 0], frame0, atol=1e-6)
+
+
+def test_visibility_turns_off_behind_passive_ramp(reg, tmp_path):
+    """A coconut drops behind a ramp's 0.45 m back wall, seen from the wall's side: its points are
+    visible over the wall at frame 0 and hidden behind it once it lands."""
+    from rigidbench.pipeline.render import render_spec
+
+    ramp = ramp_body(reg, "ramp", 0.40, 0.45, 0.60, foot_x_m=-0.10, descends="+x")  # back wall at x = -0.5
+    ball = object_body(reg, "coconut_0", "coconut", (0.10, 0.0, 0.60 + 0.06))
+    spec = make_spec(reg, "free_fall", [ramp, ball], sample_id="occlusion")
+    top = spec.support.centre_m[2]
+    spec = dataclasses.replace(spec, camera=CameraSpec(
+        azimuth_deg=180.0, relative_azimuth_deg=180.0, elevation_deg=5.0, distance_m=2.0,
+        target_m=(spec.support.centre_m[0], spec.support.centre_m[1], top + 0.35), lens_mm=35.0,
+        sensor_width_mm=36.0, visibility=1.0))
+    path = render_spec(spec, reg, reg.preset(QUALITY), tmp_path / "occlusion")
+    s = B.Sample(path)
+    tr = s.tracks
+    assert tr.n_points >= 10
+    assert tr.visibility[:, 0].all()
+    assert not tr.visibility[:, -1].any()
+    assert not s.masks[-1, 1].any()  # the coconut is fully hidden
+    assert (np.diff(tr.visibility.astype(int), axis=1) <= 0).all()  # once hidden, stays hidden
+    px = np.rint(tr.tracks_px[:, -1]).astype(int)
+    W, H = s.resolution
+    inside = (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
+    assert inside.all()
+    assert s.masks[-1, 0, px[:, 1], px[:, 0]].all()  # they project onto the ramp that hides them
+
+
+def test_check_bundle_reports_damage(rendered, tmp_path):
+    path, _ = rendered["bounce"]
+    bad = tmp_path / "bad"
+    shutil.copytree(path, bad)
+    assert B.check_bundle(bad) == []
+    (bad / B.FRAMES_DIR / B.frame_name(3)).unlink()
+    depth = B.Sample(bad).depth
+    B.write_depth(bad / B.DEPTH_FILE, depth[:-1])
+    (bad / B.PROMPT_FILE).unlink()
+    problems = B.check_bundle(bad)
+    assert any(p.startswith("frames/") for p in problems)
+    assert any(p.startswith("depth.npz") and "axis 0" in p for p in problems)
+    assert any(p.startswith("prompt.txt") for p in problems)
+
+
+def test_show_writes_contact_sheet(rendered, tmp_path):
+    import argparse
+
+    from PIL import Image
+
+    from rigidbench.pipeline.render import add_render_commands
+
+    path, _ = rendered["ramp_collision"]
+    parser = argparse.ArgumentParser()
+    add_render_commands(parser.add_subparsers(dest="command"))
+    out = tmp_path / "sheet.png"
+    args = parser.parse_args(["show", path.name, "--split", "eval", "--data", str(path.parents[1]), "--out", str(out)])
+    assert args.func(args) == 0
+    with Image.open(out) as im:
+        assert im.size[0] > 800 and im.size[1] > 400
+
+
+def test_rerun_skips_complete_bundles(rendered, reg, task_rows):
+    from rigidbench.pipeline.render import render_rows
+
+    path, _ = rendered["free_fall"]
+    before = (path / B.METADATA_FILE).stat().st_mtime_ns
+    done, failures = render_rows([task_rows["free_fall"]], reg, path.parents[1], quality=QUALITY, progress=False)
+    assert done == [] and failures == []
+    assert (path / B.METADATA_FILE).stat().st_mtime_ns == before
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        text = Path(f"/proc/{pid}/task/{pid}/children").read_text()
+    except OSError:
+        return []
+    return [int(c) for c in text.split()]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the worker process through /proc")
+def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows, tmp_path):
+    """Kill the worker mid-render: the run reports the example as failed and leaves no bundle; a
+    rerun renders it completely, identical to the first render (RGB within one level)."""
+    from rigidbench.pipeline.render import render_rows
+
+    row = task_rows["ball_chain"]
+    data = tmp_path / "data"
+    tmp_dir = data / row.split / f".{row.sample_id}.tmp"
+    script = textwrap.dedent(f"""
+        import sys
+        from pathlib import Path
+        from rigidbench import manifest
+        from rigidbench.config import registry
+        from rigidbench.pipeline.render import render_rows
+        reg = registry()
+        rows = manifest.select(manifest.rows("eval", reg), ["{row.sample_id}"])
+        done, failures = render_rows(rows, reg, Path(r"{data}"), quality="{QUALITY}", progress=False)
+        for f in failures:
+            print("FAILED", f.sample_id, f.reason)
+        sys.exit(1 if failures else 0)
+    """)
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True, env=env)
+    killed = False
+    deadline = time.time() + 120
+    while time.time() < deadline and parent.poll() is None:
+        if (tmp_dir / ".passes").is_dir() and any((tmp_dir / ".passes").glob("*.exr")):
+            for pid in _children(parent.pid):
+                os.kill(pid, signal.SIGKILL)
+                killed = True
+            break
+        time.sleep(0.02)
+    output, _ = parent.communicate(timeout=120)
+    assert killed, f"the worker finished before it could be killed:\n{output}"
+    assert parent.returncode == 1, output
+    assert f"FAILED {row.sample_id} worker process killed by SIGKILL" in output
+    assert not (data / row.split / row.sample_id).exists()
+    assert tmp_dir.exists()  # the half-written bundle is left where a rerun will replace it
+
+    done, failures = render_rows([row], reg, data, quality=QUALITY, progress=False)
+    assert done == [row.sample_id] and failures == []
+    assert not tmp_dir.exists()
+    again = B.Sample(data / row.split / row.sample_id)
+    assert B.check_bundle(again.path) == []
+    first = B.Sample(rendered["ball_chain"][0])
+    np.testing.assert_array_equal(again.masks, first.masks)
+    np.testing.assert_array_equal(again.depth, first.depth)
+    assert np.abs(again.frames.astype(int) - first.frames.astype(int)).max() <= 1
+    np.testing.assert_array_equal(again.tracks.tracks_px, first.tracks.tracks_px)
+    np.testing.assert_array_equal(again.tracks.visibility, first.tracks.visibility)
+    assert json.loads((again.path / B.SPEC_FILE).read_text()) == json.loads((first.path / B.SPEC_FILE).read_text())
+
+
+def test_render_command_rejects_unknown_ids(tmp_path):
+    import argparse
+
+    from rigidbench.cli import UserError
+    from rigidbench.pipeline.render import add_render_commands
+
+    parser = argparse.ArgumentParser()
+    add_render_commands(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["render", "--split", "eval", "--ids", "99999", "--data", str(tmp_path)])
+    with pytest.raises(UserError, match="99999"):
+        args.func(args)
