@@ -116,6 +116,12 @@ def cmd_predict(args) -> int:
     return 1 if failed else 0
 
 
+def cmd_demo(args) -> int:
+    from .pipeline.demo import run_demo
+
+    return run_demo(args.out, quality=args.quality)
+
+
 # -- parser --------------------------------------------------------------------------------------
 
 
@@ -179,6 +185,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)
     p.set_defaults(func=cmd_evaluate)
+    p = sub.add_parser("demo", help="the whole loop on this machine: render, predict, evaluate (CPU, minutes)")
+    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output directory (default demo_out)")
+    p.add_argument("--quality", choices=("preview", "test"), default="preview")
+    p.set_defaults(func=cmd_demo)
     return parser
 
 
