@@ -362,3 +362,27 @@ def test_render_command_rejects_unknown_ids(tmp_path):
     args = parser.parse_args(["render", "--split", "eval", "--ids", "99999", "--data", str(tmp_path)])
     with pytest.raises(UserError, match="99999"):
         args.func(args)
+
+
+def test_failing_example_is_reported_and_the_others_continue(reg, task_rows, tmp_path):
+    import yaml
+
+    from rigidbench.config import PACKAGE_CONFIG_DIR
+    from rigidbench.pipeline.render import render_rows
+
+    bad, good = task_rows["bounce"], task_rows["free_fall"]
+    assert bad.scene != good.scene
+    scene = yaml.safe_load((PACKAGE_CONFIG_DIR / "scenes" / f"{bad.scene}.yaml").read_text())
+    for support in scene["supports"]:
+        support["size_m"] = [0.05, 0.05]  # no task fits: the spec builder raises SpecError
+    (tmp_path / "cfg" / "scenes").mkdir(parents=True)
+    (tmp_path / "cfg" / "scenes" / f"{bad.scene}.yaml").write_text(yaml.safe_dump(scene))
+    reg2 = load_registry([tmp_path / "cfg"])
+    data = tmp_path / "data"
+    done, failures = render_rows([bad, good], reg2, data, quality=QUALITY, config_dirs=[tmp_path / "cfg"],
+                                 progress=False)
+    assert done == [good.sample_id]
+    assert [f.sample_id for f in failures] == [bad.sample_id]
+    assert failures[0].reason.startswith("SpecError") and bad.sample_id in failures[0].reason
+    assert not (data / bad.split / bad.sample_id).exists()
+    assert B.check_bundle(data / good.split / good.sample_id) == []

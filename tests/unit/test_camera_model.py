@@ -69,3 +69,67 @@ def test_world_to_camera_cv_is_inverse_pose_with_flip():
     np.testing.assert_allclose(w2c @ c2w, flip, atol=1e-12)
     p = np.array([0.1, 0.2, 0.3])
     np.testing.assert_allclose((w2c @ np.r_[p, 1])[:3], cm.to_camera_cv(p, R, t), atol=1e-12)
+
+
+# -- framing and camera search geometry (pure parts of rigidbench.blender.camera) ---------------------
+
+from rigidbench.blender import camera as bcam  # noqa: E402  (imports no bpy)
+from rigidbench.config import CameraSettings  # noqa: E402
+from rigidbench.spec.types import Body, BodyPhysics, SceneSpec, SimSpec, SupportSpec  # noqa: E402
+
+
+def _spec(positions, rotation_deg=0.0, size=(0.1, 0.1, 0.1)):
+    phys = BodyPhysics(0.1, 0.5, 0.5)
+    bodies = tuple(Body(name=f"b{i}", asset="apple", role="active", step="s", position_m=p, quat_wxyz=(1, 0, 0, 0),
+                        size_m=size, physics=phys) for i, p in enumerate(positions))
+    return SceneSpec(sample_id="x", split="eval", task="free_fall", scene="s", surface="top", seed=1,
+                     partition="p", allowed_objects=("apple",), prompt="p",
+                     support=SupportSpec("top", (1.0, 2.0, 0.9), (2.0, 1.0), 0.0, BodyPhysics(0, 0.4, 0.3)),
+                     bodies=bodies, footprint_m=(0.1, 0.1), rotation_candidates_deg=(rotation_deg,),
+                     task_rotation_deg=rotation_deg, azimuth_candidates_deg=(0.0,),
+                     sim=SimSpec(24, 49, 30, 20, 9.81, 0.1, 0.5, 0.001, 0.0001))
+
+
+def test_framing_box_joins_actors_and_support_top():
+    lo, hi = bcam.framing_box(_spec([(0.0, 0.0, 0.55)]), padding_m=0.2)
+    # body centre (1, 2, 1.45) +- 0.05, extended down to the support top 0.9, padded by 0.2
+    np.testing.assert_allclose(lo, [0.75, 1.75, 0.70])
+    np.testing.assert_allclose(hi, [1.25, 2.25, 1.70])
+
+
+def test_framing_distance_rule():
+    cfg = CameraSettings()
+    target, d = bcam.framing(_spec([(0.0, 0.0, 0.55)]), cfg)
+    np.testing.assert_allclose(target, [1.0, 2.0, 1.2])
+    assert d == pytest.approx(1.4)  # 1.4 x 1.0 m tall box = 1.4, the minimum
+    target, d = bcam.framing(_spec([(-0.6, 0.0, 0.05), (0.6, 0.0, 0.05)]), cfg)
+    assert d == pytest.approx(1.4 * (1.2 + 0.1 + 0.4))  # widest extent along x
+    _, d = bcam.framing(_spec([(0.0, 0.0, 0.05)]), cfg)
+    assert d == pytest.approx(1.4)  # small layouts keep the 1.4 m minimum
+
+
+def test_framing_follows_task_rotation():
+    _, d0 = bcam.framing(_spec([(-0.6, 0.0, 0.05), (0.6, 0.0, 0.05)], rotation_deg=0.0), CameraSettings())
+    lo, hi = bcam.framing_box(_spec([(-0.6, 0.0, 0.05), (0.6, 0.0, 0.05)], rotation_deg=90.0), 0.2)
+    np.testing.assert_allclose(hi - lo, [0.5, 1.7, 0.5], atol=1e-9)  # the row now runs along y
+
+
+def test_camera_spec_world_azimuth_is_rotation_plus_relative():
+    cam = bcam.camera_spec(_spec([(0.0, 0.0, 0.55)], rotation_deg=300.0), 90.0, CameraSettings(), 0.75)
+    assert cam.azimuth_deg == pytest.approx(30.0) and cam.relative_azimuth_deg == 90.0
+    assert cam.elevation_deg == 10.0 and cam.lens_mm == 35.0 and cam.visibility == 0.75
+    R, t = bcam.camera_pose(cam)
+    np.testing.assert_allclose(t, cm.camera_position(cam.target_m, 30.0, 10.0, cam.distance_m))
+
+
+def test_sample_surface_is_on_the_mesh_and_area_weighted():
+    # two triangles in the z=0 plane: areas 0.5 (x in [0,1]) and 4.5 (x in [2,5])
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [5, 0, 0], [2, 3, 0]], float)
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    p = bcam.sample_surface(v, f, 4000, np.random.default_rng(0))
+    assert p.shape == (4000, 3) and (p[:, 2] == 0).all()
+    small = p[:, 0] <= 1
+    assert (p[small].sum(1) <= 1 + 1e-12).all()  # inside the first triangle
+    big = p[~small]
+    assert ((big[:, 0] >= 2) & (big[:, 1] >= 0) & (big[:, 0] - 2 + big[:, 1] <= 3 + 1e-12)).all()
+    assert small.mean() == pytest.approx(0.1, abs=0.02)

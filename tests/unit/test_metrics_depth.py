@@ -273,3 +273,19 @@ def test_undefined_cases_are_nan():
     assert math.isnan(r.value) and np.isnan(r.per_frame).all()
     with pytest.raises(ValueError, match="actor_index"):
         ate3d(xy, vis, vis, actor + 5, 1 / depth, depth, K, R_C, CAM, pos)
+
+
+def test_body_origin_offset_counts_unless_reference_points_are_given():
+    # The simulator position is the body origin, here 0.05 m behind the tracked surface
+    # points. The paper's ATE-3D compares against it, so even a perfect prediction keeps a
+    # floor of 0.05 m; with ref_points_m the target is the median of the same tracked points.
+    pos = positions()
+    pts, actor = body_points(pos)
+    origin = pos + 0.05 * FORWARD
+    depth, _ = render(pts)
+    xy, _ = project(pts)
+    vis = np.ones(xy.shape[:2], bool)
+    paper = ate3d(xy, vis, vis, actor, 1.0 / depth, depth, K, R_C, CAM, origin)
+    assert paper.value == pytest.approx(0.05 / 0.32, rel=1e-6)
+    same_points = ate3d(xy, vis, vis, actor, 1.0 / depth, depth, K, R_C, CAM, origin, ref_points_m=pts)
+    assert same_points.value == pytest.approx(0.0, abs=1e-9)

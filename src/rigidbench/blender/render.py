@@ -18,6 +18,7 @@ such as ramps, in spec order); the support and the environment keep index 0.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -76,6 +77,7 @@ def select_device(request: str = "auto") -> RenderDevice:
         raise ValueError(f"unknown render device '{request}'; choose one of {', '.join(DEVICE_CHOICES)}")
     if request != "cpu":
         prefs = bpy.context.preferences.addons["cycles"].preferences
+        prefs.refresh_devices()  # Blender does not probe GPUs at startup
         for kind in ("OPTIX", "CUDA"):
             try:
                 devices = [d for d in prefs.get_devices_for_type(kind) if d.type == kind]
@@ -103,6 +105,7 @@ def configure_cycles(scene: Any, preset: RenderPreset, seed: int, device: Render
     r.use_motion_blur = False
     r.use_persistent_data = bool(preset.persistent_data)
     r.film_transparent = False
+    r.use_sequencer = False
     r.use_border = False
     if threads:
         r.threads_mode, r.threads = "FIXED", int(threads)
@@ -138,6 +141,7 @@ def beauty_mode(scene: Any, preset: RenderPreset, device: RenderDevice) -> None:
         c.denoiser = "OPTIX" if device.kind == "OPTIX" else "OPENIMAGEDENOISE"
         c.denoising_prefilter = DENOISE_PREFILTER.get(preset.name, "FAST")
         c.denoising_input_passes = "RGB_ALBEDO_NORMAL"
+        c.denoising_use_gpu = device.is_gpu
     c.filter_width = BEAUTY_FILTER_WIDTH_PX
     c.max_bounces = preset.max_bounces
     scene.render.use_compositing = False
@@ -263,6 +267,8 @@ def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[s
     the physics bpy object. With the assets package, each actor gets its procedural model as a child
     of its physics object (which is hidden from render) and the scene's environment is built (the
     physics support and floor are then hidden from render); otherwise plain materials are used."""
+    import bpy
+
     from .physics import FLOOR_NAME, SUPPORT_NAME
 
     have_objects, have_env = assets_available()
@@ -306,8 +312,6 @@ def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[s
         obj.pass_index = 0
     for k, body in enumerate(spec.bodies, start=1):
         render_objects[body.name].pass_index = k
-    import bpy
-
     bpy.context.view_layer.update()
     return Dressing(render_objects=render_objects, environment=environment, uses_assets=have_objects,
                     hidden=hidden)
@@ -403,7 +407,7 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
     W, H = preset.resolution
     index = np.zeros((T, H, W), np.int16)
     depth = np.zeros((T, H, W), np.float32)
-    t3 = time.perf_counter()
+    t3, c3 = time.perf_counter(), time.process_time()
     data_mode(scene)
     for f in range(T):
         scene.frame_set(f + 1)
@@ -413,7 +417,8 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
         if on_frame:
             on_frame(f + 1, 2 * T)
     seconds["passes"] = time.perf_counter() - t3
-    t4 = time.perf_counter()
+    seconds["passes_cpu"] = time.process_time() - c3
+    t4, c4 = time.perf_counter(), time.process_time()
     beauty_mode(scene, preset, chosen)
     for f in range(T):
         scene.frame_set(f + 1)
@@ -422,6 +427,7 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
         if on_frame:
             on_frame(T + f + 1, 2 * T)
     seconds["rgb"] = time.perf_counter() - t4
+    seconds["rgb_cpu"] = time.process_time() - c4  # CPU time of all render threads (wall time suffers on a busy machine)
     vs = scene.view_settings
     return ExampleRender(
         spec=spec, simulation=sim, index=index, depth_m=depth, device=chosen, seconds=seconds,
@@ -432,8 +438,6 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
 
 
 def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
-    import dataclasses
-
     return dataclasses.replace(spec, render_preset=preset)
 
 

@@ -48,22 +48,22 @@ class _SSIMWorkspace:
             np.empty(shape, np.float32) for _ in range(8))
 
 
-_workspaces = threading.local()
-
-
-def _workspace(shape: tuple[int, ...]) -> _SSIMWorkspace:
-    ws = getattr(_workspaces, "ws", None)
+def _workspace(store: threading.local, shape: tuple[int, ...]) -> _SSIMWorkspace:
+    """The calling thread's workspace in `store`, (re)allocated when the frame shape changes."""
+    ws = getattr(store, "ws", None)
     if ws is None or ws.shape != shape:
-        ws = _workspaces.ws = _SSIMWorkspace(shape)
+        ws = store.ws = _SSIMWorkspace(shape)
     return ws
 
 
-def ssim_frame(ref: np.ndarray, gen: np.ndarray, data_range: float = 255.0) -> float:
-    """ref, gen: (H, W, C) uint8 or float. Returns single-scale SSIM (mean over channels of the mean SSIM map)."""
+def ssim_frame(ref: np.ndarray, gen: np.ndarray, data_range: float = 255.0,
+               store: threading.local | None = None) -> float:
+    """ref, gen: (H, W, C) uint8 or float. Returns single-scale SSIM (mean over channels of the mean
+    SSIM map); `store` lets consecutive calls in one thread reuse their buffers."""
     import cv2
 
     shape = ref.shape if ref.ndim == 3 else ref.shape + (1,)
-    ws = _workspace(shape)
+    ws = _workspace(store if store is not None else threading.local(), shape)
     np.copyto(ws.x, np.asarray(ref).reshape(shape), casting="unsafe")
     np.copyto(ws.y, np.asarray(gen).reshape(shape), casting="unsafe")
     h, w = shape[:2]
@@ -124,12 +124,17 @@ def ssim(ref_rgb: np.ndarray, gen_rgb: np.ndarray, workers: int | None = None) -
     _check_rgb(ref_rgb, gen_rgb)
     workers = workers or min(4, os.cpu_count() or 1)
     frames = range(ref_rgb.shape[0])
+    store = threading.local()  # one workspace per thread, freed when this call returns
+
+    def one(t: int) -> float:
+        return ssim_frame(ref_rgb[t], gen_rgb[t], store=store)
+
     if workers == 1:
-        values = [ssim_frame(ref_rgb[t], gen_rgb[t]) for t in frames]
+        values = [one(t) for t in frames]
     else:
         # OpenCV and numpy release the GIL, so frames run in parallel without copies.
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            values = list(pool.map(lambda t: ssim_frame(ref_rgb[t], gen_rgb[t]), frames))
+            values = list(pool.map(one, frames))
     per_frame = np.asarray(values, dtype=np.float64)
     return MetricResult(finite_mean(per_frame), per_frame)
 
@@ -142,7 +147,7 @@ def rgb_to_lpips_input(rgb: np.ndarray, device: str | None = None):
     return x.permute(0, 3, 1, 2).float().div_(127.5).sub_(1.0)
 
 
-def lpips(ref_rgb: np.ndarray, gen_rgb: np.ndarray, net: Callable, batch_size: int = 8,
+def lpips(ref_rgb: np.ndarray, gen_rgb: np.ndarray, net: Callable, batch_size: int = 4,
           device: str | None = None) -> MetricResult:
     """ref_rgb, gen_rgb: (T, H, W, 3) uint8; net(x, y) on (B, 3, H, W) in [-1, 1] returns (B,) or
     (B, 1, 1, 1) distances. Returns the mean LPIPS over all frames and (T,) per frame."""

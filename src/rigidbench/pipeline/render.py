@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import queue as queue_mod
 import shutil
 import signal
 import sys
@@ -247,9 +246,10 @@ def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path,
     running: dict[int, _Child] = {}
     done_ids: list[str] = []
     failures: list[Failure] = []
-    bar = tqdm(total=len(todo), desc="examples", unit="ex", disable=not progress, position=0)
+    show = progress and bool(todo)
+    bar = tqdm(total=len(todo), desc="examples", unit="ex", disable=not show, position=0)
     frame_bar = tqdm(total=len(todo) * 2 * preset.frames, desc="frames (passes + RGB)", unit="fr",
-                     disable=not progress, position=1)
+                     disable=not show, position=1)
     sel = selectors.DefaultSelector()
 
     def handle(child: _Child, line: bytes) -> None:
