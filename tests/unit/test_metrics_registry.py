@@ -74,3 +74,12 @@ def test_geometric_median():
     # robust to an outlier, unlike the mean
     pts = np.vstack([np.random.default_rng(0).normal(0, 0.01, (9, 3)), [[100.0, 0, 0]]])
     assert np.linalg.norm(geometric_median(pts)) < 0.05
+
+
+def test_infer_device_follows_the_network():
+    torch = pytest.importorskip("torch")
+    from rigidbench.metrics.common import infer_device
+
+    assert infer_device(torch.nn.Linear(2, 2)) == torch.device("cpu")
+    assert infer_device(lambda x: x) is None
+    assert infer_device(torch.nn.Linear(2, 2), "meta") == "meta"

@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, check_same_shape, finite_mean
+from rigidbench.metrics.common import MetricResult, check_same_shape, finite_mean, infer_device
 
 SSIM_WIN_SIZE = 11
 SSIM_WIN_SIGMA = 1.5
@@ -150,10 +150,12 @@ def rgb_to_lpips_input(rgb: np.ndarray, device: str | None = None):
 def lpips(ref_rgb: np.ndarray, gen_rgb: np.ndarray, net: Callable, batch_size: int = 4,
           device: str | None = None) -> MetricResult:
     """ref_rgb, gen_rgb: (T, H, W, 3) uint8; net(x, y) on (B, 3, H, W) in [-1, 1] returns (B,) or
-    (B, 1, 1, 1) distances. Returns the mean LPIPS over all frames and (T,) per frame."""
+    (B, 1, 1, 1) distances; inputs go to `device`, by default the device of net's parameters.
+    Returns the mean LPIPS over all frames and (T,) per frame."""
     import torch
 
     _check_rgb(ref_rgb, gen_rgb)
+    device = infer_device(net, device)
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     values = []

@@ -53,6 +53,17 @@ def nested_mean(q: np.ndarray) -> MetricResult:
     return MetricResult(finite_mean(per_frame), per_frame)
 
 
+def infer_device(net, device=None):
+    """`device` if given, else the device of a torch module's first parameter, else None (CPU)."""
+    if device is not None:
+        return device
+    parameters = getattr(net, "parameters", None)
+    if callable(parameters):
+        for p in parameters():
+            return p.device
+    return None
+
+
 def check_same_shape(name_a: str, a: np.ndarray, name_b: str, b: np.ndarray) -> None:
     """Raise a ValueError naming both arrays when their shapes differ."""
     if a.shape != b.shape:

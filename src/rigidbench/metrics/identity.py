@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, finite_mean
+from rigidbench.metrics.common import MetricResult, finite_mean, infer_device
 from rigidbench.metrics.tracks import check_tracks
 
 PATCH_SIZE_PX = 64
@@ -117,7 +117,8 @@ def iddrift(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.ndarray, ge
             ref_visible: np.ndarray, gen_visible: np.ndarray, actor_index: np.ndarray,
             feature_fn: Callable, batch_size: int = 256, device: str | None = None) -> MetricResult:
     """RGB (T, H, W, 3) uint8; tracks (P, T, 2) px; visibilities (P, T) bool; actor_index (P,) int;
-    feature_fn maps (B, 3, 224, 224) ImageNet-normalised float to (B, D). Returns 1 - mean over
+    feature_fn maps (B, 3, 224, 224) ImageNet-normalised float to (B, D); patches are prepared on
+    `device`, by default the device of feature_fn's parameters if it is a torch module. Returns 1 - mean over
     actors of the actor's mean patch cosine similarity (NaN if no actor has a pair), and (T,)
     per frame: 1 - the same actor-then-pair mean restricted to frame t (NaN at t = 0)."""
     check_tracks(ref_tracks, gen_tracks, ref_visible, gen_visible)
@@ -131,7 +132,7 @@ def iddrift(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.ndarray, ge
     if len(p_idx) == 0:
         return MetricResult(float("nan"), per_frame)
     sims = pair_similarities(ref_rgb, gen_rgb, ref_tracks, gen_tracks, p_idx, t_idx, feature_fn,
-                             batch_size, device)
+                             batch_size, infer_device(feature_fn, device))
     finite = np.isfinite(sims)
     sims, t_idx, actors = sims[finite], t_idx[finite], actor_index[p_idx][finite]
     if len(sims) == 0:
