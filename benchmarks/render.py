@@ -13,6 +13,7 @@ for `preview` on a CPU is < 0.5 s per frame. Run it on an otherwise idle machine
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
@@ -24,13 +25,28 @@ import time
 from pathlib import Path
 
 
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Send the C-level stdout (Blender's per-tile progress) to /dev/null, so stdout holds only the JSON."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
 def time_example(row, reg, preset, device: str) -> dict:
     """Render one example in this process; returns timings (seconds, per frame where named so)."""
     from rigidbench.blender.render import render_example
     from rigidbench.spec.build import build_scene_spec
 
     spec = build_scene_spec(row, reg)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, _quiet_stdout():
         t0 = time.perf_counter()
         out = render_example(spec, reg, preset, Path(tmp) / "frames", Path(tmp) / "passes", device=device)
         total = time.perf_counter() - t0

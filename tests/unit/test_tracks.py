@@ -8,7 +8,6 @@ v = 23.5 - 40 z / (5 + y). Actor A is a flat patch at depth 5 m that slides +x b
 import math
 
 import numpy as np
-import pytest
 
 from rigidbench.groundtruth import camera_model as cm
 from rigidbench.groundtruth import tracks as gt

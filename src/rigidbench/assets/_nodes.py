@@ -112,8 +112,7 @@ class Graph:
         return self.add("ShaderNodeSeparateXYZ", Vector=vector).outputs
 
     def image(self, img, vector=None, interpolation: str = "Linear", extension: str = "REPEAT"):
-        node = self.add("ShaderNodeTexImage", {"image": img, "interpolation": interpolation,
-                                                "extension": extension})
+        node = self.add("ShaderNodeTexImage", {"image": img, "interpolation": interpolation, "extension": extension})
         if vector is not None:
             self.set(node.inputs["Vector"], vector)
         return node

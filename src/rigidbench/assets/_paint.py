@@ -198,8 +198,8 @@ def apple() -> np.ndarray:
 def orange() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=21, freq=3.0)
-    img = blend(fill(H, W, [1.0, 0.45, 0.0]), [0.92, 0.33, 0.0], smoothstep(0.0, 0.8, n) * 0.7)
-    img = blend(img, [1.0, 0.58, 0.05], smoothstep(0.2, -0.8, n) * 0.5)
+    img = blend(fill(H, W, [0.9, 0.36, 0.0]), [0.8, 0.27, 0.0], smoothstep(0.0, 0.8, n) * 0.7)
+    img = blend(img, [0.95, 0.48, 0.02], smoothstep(0.2, -0.8, n) * 0.5)
     img = blend(img, [0.35, 0.45, 0.12], smoothstep(0.985, 0.995, p[..., 2]))  # stem scar
     img = blend(img, [0.55, 0.35, 0.1], smoothstep(-0.99, -0.997, p[..., 2]))  # navel
     speck = dots(p, fibonacci_sphere(900), 0.012)
@@ -367,19 +367,20 @@ def tennis_ball() -> np.ndarray:
 
 @functools.cache
 def cricket_ball() -> np.ndarray:
-    p = sphere_points(H, W)
-    u, _ = uv_grid(H, W)
-    img = blend(fill(H, W, [0.62, 0.05, 0.06]), [0.42, 0.03, 0.04], smoothstep(0.1, 0.9, fbm(p, seed=161, freq=3.0)))
+    h, w = 256, 512
+    p = sphere_points(h, w)
+    u, _ = uv_grid(h, w)
+    img = blend(fill(h, w, [0.62, 0.05, 0.06]), [0.42, 0.03, 0.04], smoothstep(0.1, 0.9, fbm(p, seed=161, freq=3.0)))
     z = p[..., 2]
-    img = blend(img, [0.35, 0.03, 0.03], 1 - smoothstep(0.004, 0.01, np.abs(z)))  # central groove
-    rows = np.zeros((H, W), bool)
-    for offset in (0.025, 0.05, 0.075):
+    img = blend(img, [0.5, 0.04, 0.04], (np.abs(z) < 0.15).astype(float))  # raised seam band
+    img = blend(img, [0.3, 0.02, 0.02], (np.abs(z) < 0.012).astype(float))  # central groove
+    phase = u * 180
+    dash = np.abs(phase - np.round(phase)) < 0.32
+    for offset in (0.035, 0.08, 0.125):
         for sign in (-1, 1):
-            phase = u * 220
-            rows |= (np.abs(z - sign * offset) < 0.008) & (np.abs(phase - np.round(phase)) < 0.3)
-    img = blend(img, [0.95, 0.92, 0.82], rows.astype(float))
-    quarter = (np.abs(p[..., 0]) < 0.01) & (np.abs(z) > 0.12)  # quarter seams
-    img = blend(img, [0.5, 0.1, 0.08], quarter.astype(float))
+            img = blend(img, [0.96, 0.93, 0.84], ((np.abs(z - sign * offset) < 0.014) & dash).astype(float))
+    quarter = (np.abs(p[..., 0]) < 0.012) & (np.abs(z) > 0.2)  # quarter seams
+    img = blend(img, [0.82, 0.72, 0.6], (quarter & (np.abs(np.sin(z * 90)) > 0.3)).astype(float))
     logo = np.array([[0.0, 0.82, 0.55]])
     logo /= np.linalg.norm(logo)
     return blend(img, [0.85, 0.68, 0.25], dots(p, logo, 0.22, soft=0.1) * (1 - dots(p, logo, 0.17, soft=0.1)))
@@ -521,7 +522,7 @@ def die() -> np.ndarray:
         for pu, pv in _PIP_LAYOUT[n]:
             r = 0.11 if n > 1 else 0.15
             pip = np.maximum(pip, 1 - smoothstep(r * 0.85, r, np.hypot(tu - pu, tv - pv)))
-        colour = [0.75, 0.05, 0.05] if n == 1 else [0.04, 0.04, 0.05]
+        colour = [0.04, 0.04, 0.05]
         img[rs, cs] = blend(img[rs, cs], colour, pip)
     return img
 
@@ -565,7 +566,8 @@ def _butterfly(shape_h: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     wing = (upper | lower) & (ax > 0.05)
     rim = wing & ~((((ax - 0.45) / 0.4) ** 2 + ((y + 0.3) / 0.45) ** 2 < 1) |
                    (((ax - 0.32) / 0.24) ** 2 + ((y - 0.38) / 0.32) ** 2 < 1))
-    spots = (((ax - 0.55) / 0.1) ** 2 + ((y + 0.35) / 0.1) ** 2 < 1) | (((ax - 0.3) / 0.07) ** 2 + ((y - 0.45) / 0.07) ** 2 < 1)
+    spots = ((((ax - 0.55) / 0.1) ** 2 + ((y + 0.35) / 0.1) ** 2 < 1)
+             | (((ax - 0.3) / 0.07) ** 2 + ((y - 0.45) / 0.07) ** 2 < 1))
     body = (ax < 0.06) & (np.abs(y) < 0.7)
     col = np.zeros((s, s, 3))
     col[wing] = main
@@ -578,15 +580,22 @@ def _butterfly(shape_h: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 @functools.cache
 def butterfly_mural(h: int = 512, w: int = 1536) -> np.ndarray:
     """Pale sky wall with leafy vines and ~60 butterflies of six palettes, varied size and tilt."""
+    from scipy import ndimage
+
     u, v = uv_grid(h, w)
-    p = np.stack([np.cos(2 * np.pi * u) * 3, np.sin(2 * np.pi * u) * 3, v * 3], -1)
-    img = blend(fill(h, w, [0.86, 0.93, 0.9]), [0.95, 0.92, 0.82], smoothstep(-0.5, 0.8, fbm(p, seed=191, freq=1.0)))
-    for k in range(7):  # swaying green vines
+    cu, cv = uv_grid(h // 8, w // 8)  # the soft background tone is smooth: paint it coarse, then zoom
+    p = np.stack([np.cos(2 * np.pi * cu) * 3, np.sin(2 * np.pi * cu) * 3, cv * 3], -1)
+    tone = ndimage.zoom(smoothstep(-0.5, 0.8, fbm(p, seed=191, freq=1.0, octaves=2)), 8, order=1)
+    img = blend(fill(h, w, [0.86, 0.93, 0.9]), [0.95, 0.92, 0.82], tone[:h, :w])
+    for k in range(7):  # swaying green vines, painted in a narrow band of columns
         x0 = (k + 0.5) / 7 + 0.03 * np.sin(k)
-        path = x0 + 0.03 * np.sin(v * 9 + k)
-        img = blend(img, [0.35, 0.6, 0.35], (np.abs(u - path) < 0.0025).astype(float))
-        leaves = (np.abs(u - path - 0.008 * np.sign(np.sin(v * 60))) < 0.006) & (np.sin(v * 60 + k) > 0.6)
-        img = blend(img, [0.42, 0.7, 0.4], leaves.astype(float))
+        c0, c1 = max(0, int((x0 - 0.05) * w)), min(w, int((x0 + 0.05) * w))
+        uu, vv = u[:, c0:c1], v[:, c0:c1]
+        path = x0 + 0.03 * np.sin(vv * 9 + k)
+        band = img[:, c0:c1]
+        band[np.abs(uu - path) < 0.0025] = [0.35, 0.6, 0.35]
+        leaves = (np.abs(uu - path - 0.008 * np.sign(np.sin(vv * 60))) < 0.006) & (np.sin(vv * 60 + k) > 0.6)
+        band[leaves] = [0.42, 0.7, 0.4]
     rng = np.random.default_rng(192)
     for k in range(60):
         size = int(rng.integers(40, 96))

@@ -48,22 +48,22 @@ def ramp_material(material: MaterialConfig):
 
 
 def wood(name: str, colour, roughness: float, planks: bool = False, plank_m: tuple[float, float] = (1.2, 0.14),
-         grain: float = 1.0, coat: float = 0.0):
-    """Wood with grain along UV u (x): rings, fibres and, with ``planks``, board seams."""
+         grain: float = 1.0, coat: float = 0.0, contrast: float = 1.0):
+    """Wood with grain along UV u (x): long streaks, fine fibres and, with ``planks``, boards with seams."""
     def build(g: Graph) -> None:
         uv = g.coords("UV")
-        rings = g.add("ShaderNodeTexWave", {"wave_type": "BANDS", "bands_direction": "Y", "wave_profile": "SIN"},
-                      Vector=g.mapping(uv, scale=(0.6, 1.0, 1.0)), Scale=14.0 * grain, Distortion=6.0, Detail=3.0,
-                      Detail_Scale=1.5)
-        fibre = g.noise(g.mapping(uv, scale=(4.0, 160.0, 4.0)), scale=1.0, detail=4.0, roughness=0.6)
-        fac = g.math("MULTIPLY_ADD", rings.outputs["Fac"], 0.55, g.math("MULTIPLY", fibre, 0.45))
-        col = g.ramp(fac, [(0.2, _lin(_scaled(colour, 0.62))), (0.55, _lin(colour)),
-                           (0.9, _lin(_scaled(colour, 1.18)))]).outputs["Color"]
+        streaks = g.noise(g.mapping(uv, scale=(1.2, 22.0 * grain, 1.2)), scale=1.0, detail=6.0, roughness=0.6,
+                          distortion=0.4)
+        fibre = g.noise(g.mapping(uv, scale=(3.0, 140.0, 3.0)), scale=1.0, detail=5.0, roughness=0.65)
+        fac = g.math("MULTIPLY_ADD", streaks.outputs["Fac"], 0.65, g.math("MULTIPLY", fibre, 0.35))
+        dark, light = 1 - 0.3 * contrast, 1 + 0.14 * contrast
+        col = g.ramp(fac, [(0.3, _lin(_scaled(colour, dark))), (0.5, _lin(colour)),
+                           (0.7, _lin(_scaled(colour, light)))]).outputs["Color"]
         height = fibre
         if planks:
-            brick = g.add("ShaderNodeTexBrick", {"offset": 0.5, "offset_frequency": 2}, Vector=uv, Scale=1.0,
-                          Color1=(0.82, 0.82, 0.82, 1.0), Color2=(1.0, 1.0, 1.0, 1.0), Mortar=(0.0, 0.0, 0.0, 1.0),
-                          Mortar_Size=0.0015, Mortar_Smooth=0.2, Bias=0.0, Brick_Width=plank_m[0],
+            brick = g.add("ShaderNodeTexBrick", {"offset": 0.37, "offset_frequency": 1}, Vector=uv, Scale=1.0,
+                          Color1=(0.8, 0.8, 0.8, 1.0), Color2=(1.08, 1.05, 1.0, 1.0), Mortar=(0.25, 0.25, 0.25, 1.0),
+                          Mortar_Size=0.0012, Mortar_Smooth=0.3, Bias=0.0, Brick_Width=plank_m[0],
                           Row_Height=plank_m[1])
             col = g.mix(col, brick.outputs["Color"], 1.0, blend="MULTIPLY")
             height = g.math("SUBTRACT", fibre, g.math("MULTIPLY", brick.outputs["Fac"], 2.0))
@@ -280,10 +280,11 @@ def rattan(name: str, colour=(0.72, 0.55, 0.33)):
 def skin(name: str, painter: Callable, roughness: float = 0.5, bump_scale: float = 250.0, bump: float = 0.1,
          sheen: float = 0.0, coat: float = 0.0, metallic: float = 0.0, image_bump: float = 0.0,
          variation: float = 0.12, specular: float = 0.5, roughness_from_image: float = 0.0,
-         sheen_tint=(1.0, 1.0, 1.0)):
+         sheen_tint=(1.0, 1.0, 1.0), pits: float = 0.0):
     """An object surface: painted UV image (pattern) x object-space noise (tone, bump).
 
     ``image_bump`` > 0 raises bright image features (seams); < 0 recesses dark ones (die pips).
+    ``pits`` adds Voronoi dimples (citrus peel) at the bump scale.
     """
     def build(g: Graph) -> None:
         uv = g.coords("UV")
@@ -295,6 +296,9 @@ def skin(name: str, painter: Callable, roughness: float = 0.5, bump_scale: float
                     Color=img.outputs["Color"]).outputs[0]
         micro = g.noise(obj, scale=bump_scale, detail=4.0, roughness=0.6)
         height = micro.outputs["Fac"]
+        if pits:
+            cells = g.voronoi(obj, scale=bump_scale * 0.6)
+            height = g.math("MULTIPLY_ADD", cells.outputs["Distance"], pits, height)
         if image_bump:
             lum = g.add("ShaderNodeRGBToBW", Color=img.outputs["Color"]).outputs[0]
             height = g.math("MULTIPLY_ADD", lum, image_bump, height)
@@ -316,8 +320,33 @@ def plain(name: str, colour, roughness: float = 0.5, metallic: float = 0.0, nois
         obj = g.coords("Object")
         n = g.noise(obj, scale=noise_scale, detail=3.0)
         col = g.mix(_lin(_scaled(colour, 1 - variation)), _lin(_scaled(colour, 1 + variation)), n.outputs["Fac"])
+        normal = g.bump(n.outputs["Fac"], strength=bump, distance=0.0005)
         bsdf = g.principled(Base_Color=col, Roughness=roughness, Metallic=metallic, Coat_Weight=coat,
-                            Transmission_Weight=transmission, Normal=g.bump(n.outputs["Fac"], strength=bump,
-                                                                              distance=0.0005))
+                            Transmission_Weight=transmission, Normal=normal)
         g.output(bsdf)
+    return cached_material(name, build)
+
+
+def wall_image(name: str, image_name: str, painter: Callable, size_m: tuple[float, float], roughness: float = 0.85):
+    """A painted image repeating every ``size_m`` (width, height) metres over metric UVs (murals, wallpaper)."""
+    def build(g: Graph) -> None:
+        uv = g.mapping(g.coords("UV"), scale=(1.0 / size_m[0], 1.0 / size_m[1], 1.0))
+        img = g.image(painted_image(image_name, painter), uv)
+        micro = g.noise(g.coords("UV"), scale=150.0, detail=3.0)
+        g.output(g.principled(Base_Color=img.outputs["Color"], Roughness=roughness,
+                              Normal=g.bump(micro, strength=0.05, distance=0.002)))
+    return cached_material(name, build)
+
+
+def terrazzo(name: str, colour=(0.9, 0.88, 0.84), chips=((0.75, 0.45, 0.35), (0.35, 0.5, 0.5), (0.3, 0.3, 0.3))):
+    """Polished terrazzo: pale matrix with coloured stone chips."""
+    def build(g: Graph) -> None:
+        uv = g.coords("UV")
+        cells = g.voronoi(uv, scale=40.0)
+        chip = g.math("LESS_THAN", g.noise(uv, scale=45.0, detail=1.0).outputs["Fac"], 0.42)
+        pick = g.ramp(cells.outputs["Color"], [(0.0, _lin(chips[0])), (0.33, _lin(chips[1])),
+                                               (0.66, _lin(chips[2]))], interpolation="CONSTANT")
+        base = g.mix(_lin(colour), _lin(_scaled(colour, 0.94)), g.noise(uv, scale=5.0).outputs["Fac"])
+        col = g.mix(base, pick.outputs["Color"], chip)
+        g.output(g.principled(Base_Color=col, Roughness=0.25, Coat_Weight=0.2))
     return cached_material(name, build)

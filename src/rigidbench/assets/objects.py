@@ -83,19 +83,20 @@ def apple() -> tuple[Part, list]:
 
 def orange() -> tuple[Part, list]:
     body = sphere(48, 24, radial=lambda v, phi: 1 + 0.006 * np.cos(7 * phi) * np.sin(np.pi * v))
-    return body, [M.skin("rb_orange", _paint.orange, roughness=0.45, coat=0.15, bump_scale=900, bump=0.35)]
+    return body, [M.skin("rb_orange", _paint.orange, roughness=0.5, bump_scale=900, bump=0.3, pits=1.5)]
 
 
 def lemon() -> tuple[Part, list]:
     r, z, v = _polar_profile(32, lambda t: 0.5 * np.sin(t) ** 1.15,
                              lambda t: -np.cos(t) * (0.5 + 0.16 * _bump_at(np.sin(t), 0.2)))
     body = revolve(r, z, 40, v_coords=v).transformed(Z_TO_X)
-    return body, [M.skin("rb_lemon", _paint.lemon, roughness=0.4, coat=0.1, bump_scale=900, bump=0.3)]
+    return body, [M.skin("rb_lemon", _paint.lemon, roughness=0.4, coat=0.1, bump_scale=900, bump=0.3, pits=1.5)]
 
 
 def kiwi() -> tuple[Part, list]:
     body = sphere(36, 18, radial=lambda v, phi: 1 + 0.02 * np.cos(2 * phi) * np.sin(np.pi * v)).transformed(Z_TO_X)
-    return body, [M.skin("rb_kiwi", _paint.kiwi, roughness=0.95, sheen=0.5, sheen_tint=(0.6, 0.5, 0.35), bump_scale=1800, bump=0.35,
+    return body, [M.skin("rb_kiwi", _paint.kiwi, roughness=0.95, sheen=0.5, sheen_tint=(0.6, 0.5, 0.35),
+                         bump_scale=1800, bump=0.35,
                          specular=0.2)]
 
 
@@ -158,7 +159,8 @@ def peach() -> tuple[Part, list]:
     def crease(vv, phi):
         return 1 - 0.05 * np.exp(-(_wrap(phi) / 0.16) ** 2) * np.sin(np.pi * vv) ** 0.5
     body = revolve(r, z, 48, radial=crease, v_coords=v)
-    return body, [M.skin("rb_peach", _paint.peach, roughness=0.7, sheen=0.6, sheen_tint=(1.0, 0.8, 0.7), bump_scale=1500, bump=0.15)]
+    return body, [M.skin("rb_peach", _paint.peach, roughness=0.7, sheen=0.6, sheen_tint=(1.0, 0.8, 0.7),
+                         bump_scale=1500, bump=0.15)]
 
 
 def tomato() -> tuple[Part, list]:
@@ -194,7 +196,8 @@ def coconut() -> tuple[Part, list]:
     vert = body.vertices.copy()
     vert[:, 2] *= 1.0 + 0.06 * vert[:, 2]  # slightly egg-shaped
     body = Part(vert, body.corners, body.sizes, body.uvs, body.materials)
-    return body, [M.skin("rb_coconut", _paint.coconut, roughness=0.9, sheen=0.5, sheen_tint=(0.8, 0.65, 0.5), bump_scale=900, bump=0.6,
+    return body, [M.skin("rb_coconut", _paint.coconut, roughness=0.9, sheen=0.5, sheen_tint=(0.8, 0.65, 0.5),
+                         bump_scale=900, bump=0.6,
                          image_bump=0.4)]
 
 
@@ -208,7 +211,8 @@ def baseball() -> tuple[Part, list]:
 
 
 def tennis_ball() -> tuple[Part, list]:
-    return sphere(48, 24), [M.skin("rb_tennis_ball", _paint.tennis_ball, roughness=0.95, sheen=0.8, sheen_tint=(0.9, 1.0, 0.6),
+    return sphere(48, 24), [M.skin("rb_tennis_ball", _paint.tennis_ball, roughness=0.95, sheen=0.8,
+                                   sheen_tint=(0.9, 1.0, 0.6),
                                    bump_scale=2500, bump=0.5, image_bump=-0.3)]
 
 

@@ -12,6 +12,8 @@ Per example (paper, appendix A.3-A.4):
 The data passes are rendered separately with one sample and a 0.01 px pixel filter, so the index
 and Z passes sample every pixel at its centre (Cycles writes them from the first sample only,
 which the pixel filter otherwise jitters across the pixel); the RGB frames keep the full filter.
+The data render uses an emission-only material override: the passes depend on geometry alone (the assets
+use no alpha cut-outs or displacement), and the procedural shaders would dominate its cost.
 Object indices: pass_index = k for the k-th actor (1..N, active objects and passive task geometry
 such as ramps, in spec order); the support and the environment keep index 0.
 """
@@ -144,17 +146,36 @@ def beauty_mode(scene: Any, preset: RenderPreset, device: RenderDevice) -> None:
         c.denoising_use_gpu = device.is_gpu
     c.filter_width = BEAUTY_FILTER_WIDTH_PX
     c.max_bounces = preset.max_bounces
+    scene.view_layers[0].material_override = None
     scene.render.use_compositing = False
 
 
+def _override_material() -> Any:
+    import bpy
+
+    mat = bpy.data.materials.get("rb_data_pass")
+    if mat is None:  # pure emission: no BSDF, so Cycles samples no lights and casts no shadow rays
+        mat = bpy.data.materials.new("rb_data_pass")
+        mat.use_nodes = True
+        nodes = mat.node_tree.nodes
+        nodes.clear()
+        emit = nodes.new("ShaderNodeEmission")
+        out = nodes.new("ShaderNodeOutputMaterial")
+        mat.node_tree.links.new(emit.outputs["Emission"], out.inputs["Surface"])
+    return mat
+
+
 def data_mode(scene: Any) -> None:
-    """Settings for the index and Z passes: one sample at each pixel centre, no light bounces."""
+    """Settings for the index and Z passes: one sample at each pixel centre, no light bounces, and a
+    plain material override (the passes depend on geometry only; skipping the procedural shaders
+    makes them several times cheaper)."""
     c = scene.cycles
     c.samples = 1
     c.use_adaptive_sampling = False
     c.use_denoising = False
     c.filter_width = DATA_FILTER_WIDTH_PX
     c.max_bounces = 0
+    scene.view_layers[0].material_override = _override_material()
     scene.render.use_compositing = True
 
 

@@ -34,13 +34,17 @@ def mask_overlay(rgb: np.ndarray, masks: np.ndarray, colours: np.ndarray, alpha:
     return np.clip(out, 0.0, 1.0)
 
 
-def depth_colours(depth_m: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """depth_m (H,W) m -> (H,W,3) float RGB (turbo, near = red); no surface (inf) is black."""
+def depth_colours(depth_m: np.ndarray, near_m: float, far_m: float) -> np.ndarray:
+    """depth_m (H,W) m -> (H,W,3) float RGB: disparity 1/depth between 1/far_m and 1/near_m on the
+    turbo map (near = red), so the actors keep their contrast against a distant background; no
+    surface (inf) is black."""
     import matplotlib
 
-    finite = np.isfinite(depth_m)
-    x = np.clip((np.where(finite, depth_m, hi) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
-    rgb = matplotlib.colormaps["turbo_r"](x)[..., :3]
+    finite = np.isfinite(depth_m) & (depth_m > 0)
+    disparity = np.where(finite, 1.0 / np.where(finite, depth_m, 1.0), 0.0)
+    lo, hi = 1.0 / far_m, 1.0 / near_m
+    x = np.clip((disparity - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    rgb = matplotlib.colormaps["turbo"](x)[..., :3]
     rgb[~finite] = 0.0
     return rgb
 
@@ -58,10 +62,11 @@ def contact_sheet_figure(sample: Sample):
     colours = actor_colours(len(names))
     masks, depth = sample.masks, sample.depth
     finite = depth[np.isfinite(depth)]
-    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0))
+    lo, hi = (np.percentile(finite, [0.5, 99.5]) if finite.size else (1.0, 2.0))
     tracks = sample.tracks
     cols = len(ts)
-    fig, axes = plt.subplots(3, cols, figsize=(3.6 * cols, 3.6 * 3 * H / W + 0.9), squeeze=False)
+    fig, axes = plt.subplots(3, cols, figsize=(3.6 * cols, 3.6 * 3 * H / W + 1.4), squeeze=False,
+                             layout="constrained")
     for j, t in enumerate(ts):
         rgb = sample.frame(t)
         ax = axes[0, j]
@@ -82,7 +87,7 @@ def contact_sheet_figure(sample: Sample):
         axes[1, j].imshow(mask_overlay(rgb, masks[t], colours))
         axes[1, j].set_title(f"frame {t}: masks", fontsize=8)
         axes[2, j].imshow(depth_colours(depth[t], float(lo), float(hi)))
-        axes[2, j].set_title(f"frame {t}: depth {lo:.2f}-{hi:.2f} m", fontsize=8)
+        axes[2, j].set_title(f"frame {t}: disparity, depth {lo:.2f}-{hi:.2f} m", fontsize=8)
     for ax in axes.ravel():
         ax.set_xlim(-0.5, W - 0.5)
         ax.set_ylim(H - 0.5, -0.5)
@@ -90,12 +95,11 @@ def contact_sheet_figure(sample: Sample):
         ax.set_yticks([])
     handles = [plt.Line2D([], [], marker="s", ls="", color=c, label=f"{n} ({r})")
                for n, r, c in zip(names, roles, colours)]
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(names), 5), fontsize=7, frameon=False)
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(names), 5), fontsize=7, frameon=False)
     meta = sample.metadata
     fig.suptitle(f"{sample.sample_id} {meta['task']} / {meta['scene']} / {meta['partition']}: {sample.prompt}\n"
                  f"{tracks.n_points} ground-truth points: o visible, x occluded",
                  fontsize=9)
-    fig.tight_layout(rect=(0, 0.05, 1, 0.95))
     return fig
 
 
