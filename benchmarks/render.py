@@ -94,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
                                        default=None),
               "examples": results}
     sys.stdout.flush()
-    print(json.dumps(report, indent=1))
+    print(json.dumps(report, indent=1), flush=True)
+    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)  # Blender prints a memory report on exit; keep stdout JSON
     return 0
 
 

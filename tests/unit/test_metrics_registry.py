@@ -48,13 +48,13 @@ def test_nested_mean_skips_undefined():
 
 def test_bilinear_sampling_convention():
     img = np.add.outer(10.0 * np.arange(4), np.arange(5))  # value = 10 * row + col
-    # pixel (row 1, col 2) has its centre at x = 2.5, y = 1.5
-    np.testing.assert_allclose(sample_bilinear(img, np.array([[2.5, 1.5], [3.0, 2.0], [0.1, 0.2]])),
+    # pixel (row 1, col 2) has its centre at x = 2, y = 1 (OpenCV / CoTracker convention)
+    np.testing.assert_allclose(sample_bilinear(img, np.array([[2.0, 1.0], [2.5, 1.5], [-0.4, -0.3]])),
                                [12.0, 17.5, 0.0])  # the last is within half a pixel of the corner
-    assert np.isnan(sample_bilinear(img, np.array([[5.1, 1.0], [-0.1, 1.0]]))).all()
+    assert np.isnan(sample_bilinear(img, np.array([[4.6, 1.0], [-0.6, 1.0]]))).all()
     img[1, 3] = np.nan
-    assert sample_bilinear(img, np.array([[2.5, 1.5]]))[0] == 12.0  # NaN neighbour with zero weight
-    assert np.isnan(sample_bilinear(img, np.array([[3.0, 1.5]]))[0])
+    assert sample_bilinear(img, np.array([[2.0, 1.0]]))[0] == 12.0  # NaN neighbour with zero weight
+    assert np.isnan(sample_bilinear(img, np.array([[2.5, 1.0]]))[0])
 
 
 def test_blender_camera_convention():

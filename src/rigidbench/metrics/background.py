@@ -29,7 +29,7 @@ def detect_background_corners(rgb0: np.ndarray, actor_masks0: np.ndarray, max_co
                               min_distance_px: float = CORNER_MIN_DISTANCE_PX) -> np.ndarray:
     """rgb0: (H, W, 3) uint8 generated frame 0; actor_masks0: (N, H, W) bool generated frame-0
     masks. Returns (C, 2) float32 Shi-Tomasi corners (x, y) in the background eroded by a 31 x 31
-    ellipse, pixel centres at +0.5 (OpenCV's integer-centred coordinates shifted by 0.5)."""
+    ellipse, in OpenCV's integer-centred pixel coordinates (the RigidBench convention)."""
     import cv2
 
     if rgb0.ndim != 3 or rgb0.shape[2] != 3 or actor_masks0.shape[1:] != rgb0.shape[:2]:
@@ -45,7 +45,7 @@ def detect_background_corners(rgb0: np.ndarray, actor_masks0: np.ndarray, max_co
                                       minDistance=min_distance_px, mask=background)
     if corners is None:
         return np.zeros((0, 2), dtype=np.float32)
-    return corners.reshape(-1, 2).astype(np.float32) + np.float32(0.5)
+    return corners.reshape(-1, 2).astype(np.float32)
 
 
 def frame_residuals(x0: np.ndarray, xt: np.ndarray, ransac_threshold_px: float = RANSAC_THRESHOLD_PX) -> np.ndarray:

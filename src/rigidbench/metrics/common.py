@@ -1,11 +1,9 @@
 """Shared pieces of the metrics: result type, nested means, pixel convention, camera geometry.
 
-Pixel convention (used by every metric, track and corner in RigidBench): image coordinates
-are (x, y) in pixels with the origin at the top-left corner of the image, so pixel (row i,
-column j) covers [j, j+1) x [i, i+1) and its centre is at x = j + 0.5, y = i + 0.5. The
-camera intrinsics K project camera points into these coordinates, so a centred principal
-point is (W/2, H/2). OpenCV functions that use integer pixel centres are shifted by 0.5 at
-the boundary.
+Pixel convention (used by every metric, track and corner in RigidBench, and by the bundle's
+K, whose principal point is (W/2 - 0.5, H/2 - 0.5)): image coordinates are (x, y) in pixels
+with pixel (row i, column j) centred at x = j, y = i, as in OpenCV and CoTracker. The
+ground-truth tracks, the rendered masks and depth, and predicted tracks all use it.
 
 Camera convention: the pose (R_c, t_c) is camera-to-world in Blender's convention (the
 camera looks down its -Z axis, +Y is up). S = diag(1, -1, -1) converts computer-vision
@@ -72,8 +70,8 @@ def check_same_shape(name_a: str, a: np.ndarray, name_b: str, b: np.ndarray) -> 
 
 
 def sample_bilinear(image: np.ndarray, xy: np.ndarray, transform=None) -> np.ndarray:
-    """image: (H, W) float; xy: (M, 2) pixel coordinates (x, y), centres at +0.5. Returns (M,)
-    float64 bilinear samples; NaN outside [0, W] x [0, H] or where a used neighbour is NaN.
+    """image: (H, W) float; xy: (M, 2) pixel coordinates (x, y), centres at integers. Returns (M,)
+    float64 bilinear samples; NaN outside [-0.5, W-0.5] x [-0.5, H-0.5] or where a used neighbour is NaN.
 
     Within half a pixel of the border the nearest edge pixels are used (edge clamping).
     `transform`, if given, maps the gathered float64 pixel values before interpolation, so
@@ -82,12 +80,11 @@ def sample_bilinear(image: np.ndarray, xy: np.ndarray, transform=None) -> np.nda
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     out = np.full(len(xy), np.nan)
     x, y = xy[:, 0], xy[:, 1]
-    inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+    inside = np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
     if not inside.any():
         return out
-    # Array-index coordinates: pixel centres at integers.
-    col = np.clip(x[inside] - 0.5, 0.0, w - 1.0)
-    row = np.clip(y[inside] - 0.5, 0.0, h - 1.0)
+    col = np.clip(x[inside], 0.0, w - 1.0)
+    row = np.clip(y[inside], 0.0, h - 1.0)
     c0 = np.minimum(np.floor(col).astype(np.int64), max(w - 2, 0))
     r0 = np.minimum(np.floor(row).astype(np.int64), max(h - 2, 0))
     c1 = np.minimum(c0 + 1, w - 1)

@@ -2,8 +2,8 @@
 
 Patches: 64 x 64 pixels centred on the reference track in the reference frame and on the
 generated track in the generated frame, at every frame t >= 1 where the point is visible in
-both clips. With pixel centres at +0.5, a patch centred at (x, y) covers columns
-round(x - 32) ... round(x - 32) + 63 (rounding half up) and likewise for rows. A patch is
+both clips. With pixel centres at integers, a patch centred at (x, y) covers columns
+round(x) - 32 ... round(x) + 31 (rounding half up) and likewise for rows. A patch is
 kept only if at least 32 of its columns and at least 32 of its rows lie inside the image; the
 part outside the image is filled with zeros (black). A pair counts only if both patches are
 kept. Patches are resized to 224 x 224 (bilinear, antialiased, half-pixel centres), scaled to
@@ -28,7 +28,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def patch_origins(centers_xy: np.ndarray, size: int = PATCH_SIZE_PX) -> np.ndarray:
-    """centers_xy: (M, 2) px (centres at +0.5). Returns (M, 2) int64 (col, row) of each patch's first pixel."""
+    """centers_xy: (M, 2) px (centres at integers). Returns (M, 2) int64 (col, row) of each patch's first pixel."""
     return np.floor(np.asarray(centers_xy, dtype=np.float64) - size / 2 + 0.5).astype(np.int64)
 
 

@@ -45,15 +45,15 @@ def _row_col_counts(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def mask_centroids(masks: np.ndarray) -> np.ndarray:
-    """masks: (T, N, H, W) bool. Returns (T, N, 2) pixel centroids (x, y), centres at +0.5; NaN if empty."""
+    """masks: (T, N, H, W) bool. Returns (T, N, 2) pixel centroids (x, y), centres at integers; NaN if empty."""
     rows, cols = _row_col_counts(masks)
     return _centroids_from_counts(rows, cols)
 
 
 def _centroids_from_counts(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     area = rows.sum(axis=-1).astype(np.float64)
-    y = rows @ (np.arange(rows.shape[-1]) + 0.5)
-    x = cols @ (np.arange(cols.shape[-1]) + 0.5)
+    y = rows @ np.arange(rows.shape[-1], dtype=np.float64)
+    x = cols @ np.arange(cols.shape[-1], dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.stack([x / area, y / area], axis=-1)
 

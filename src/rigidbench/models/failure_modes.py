@@ -122,14 +122,11 @@ def _warp_all(pred: Prediction, affines: np.ndarray) -> Prediction:
 
 
 def _affine(angle_deg: float, dx: float, dy: float, centre: tuple[float, float]) -> np.ndarray:
-    """2x3 image affine: rotate by angle about ``centre`` then translate, in pixel-centre coordinates."""
+    """2x3 image affine: rotate by angle about ``centre`` then translate (integer pixel centres, as cv2)."""
     import cv2
 
-    a = cv2.getRotationMatrix2D((centre[0] - 0.5, centre[1] - 0.5), angle_deg, 1.0)
+    a = cv2.getRotationMatrix2D((centre[0], centre[1]), angle_deg, 1.0)
     a[:, 2] += (dx, dy)
-    # cv2 works in integer-centred coordinates; convert to our pixel-centre-at-+0.5 convention.
-    shift = np.array([0.5, 0.5])
-    a[:, 2] += shift - a[:, :2] @ shift
     return a
 
 
@@ -138,9 +135,9 @@ def camera_shake(sample, severity: float, seed: int = 0) -> Prediction:
     t, h, w = pred.frames.shape[:3]
     rng = np.random.default_rng(seed + sample_seed(sample))
     amp = SHAKE_AMPLITUDE * h * severity
-    affines = np.stack([_affine(0.0, 0.0, 0.0, (w / 2, h / 2))] + [
+    affines = np.stack([_affine(0.0, 0.0, 0.0, (w / 2 - 0.5, h / 2 - 0.5))] + [
         _affine(SHAKE_ROTATION_DEG * severity * rng.uniform(-1, 1), amp * rng.uniform(-1, 1),
-                amp * rng.uniform(-1, 1), (w / 2, h / 2)) for _ in range(t - 1)])
+                amp * rng.uniform(-1, 1), (w / 2 - 0.5, h / 2 - 0.5)) for _ in range(t - 1)])
     return _warp_all(pred, affines)
 
 
@@ -148,7 +145,7 @@ def camera_drift(sample, severity: float) -> Prediction:
     pred = reference(sample, 0.0)
     t, h, w = pred.frames.shape[:3]
     shift = DRIFT_FRACTION * w * severity * np.arange(t) / max(t - 1, 1)
-    return _warp_all(pred, np.stack([_affine(0.0, float(-dx), 0.0, (w / 2, h / 2)) for dx in shift]))
+    return _warp_all(pred, np.stack([_affine(0.0, float(-dx), 0.0, (w / 2 - 0.5, h / 2 - 0.5)) for dx in shift]))
 
 
 def background_wobble(sample, severity: float) -> Prediction:

@@ -113,8 +113,8 @@ def background_confidence(bg_tracks: np.ndarray, masks: np.ndarray) -> np.ndarra
     """1 where a corner lies in the image and outside every actor mask, else 0. Returns (C,T)."""
     t, _, h, w = masks.shape
     any_actor = masks.any(axis=1)
-    x = np.floor(bg_tracks[..., 0]).astype(int)
-    y = np.floor(bg_tracks[..., 1]).astype(int)
+    x = np.rint(bg_tracks[..., 0]).astype(int)  # pixel centres at integers
+    y = np.rint(bg_tracks[..., 1]).astype(int)
     inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
     conf = np.zeros(bg_tracks.shape[:2], np.float32)
     for k in range(t):
