@@ -122,6 +122,42 @@ def cmd_demo(args) -> int:
     return run_demo(args.out, quality=args.quality)
 
 
+def _lazy(target: str):
+    """A subcommand function imported only when that subcommand runs (keeps --help instant)."""
+    def run(args):
+        import importlib
+
+        module, attr = target.split(":")
+        return getattr(importlib.import_module(module), attr)(args)
+
+    return run
+
+
+def _add_render_commands(subparsers) -> None:
+    """Register ``render`` and ``show`` on the ``rigidbench`` subparsers."""
+    p = subparsers.add_parser("render", help="simulate and render examples into sample bundles "
+                                             "(DATA/<split>/<id>/); reruns skip complete bundles")
+    p.add_argument("--split", choices=("train", "eval"), default="eval", help="manifest to draw examples from")
+    p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 (default: all)")
+    p.add_argument("--limit", type=int, help="only the first N selected examples")
+    p.add_argument("--quality", default="paper", help="render preset: paper, preview or test (configs/render.yaml)")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data directory (default: data)")
+    p.add_argument("--workers", type=int, default=1, help="examples rendered at once, one process each (default 1)")
+    p.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
+                   help="Cycles device: auto picks OptiX, then CUDA, then the CPU (default auto)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_lazy("rigidbench.pipeline.render:cmd_render"))
+
+    p = subparsers.add_parser("show", help="write a PNG contact sheet of a rendered example "
+                                           "(frames, masks, depth, ground-truth tracks)")
+    p.add_argument("id", help="sample id, e.g. 00000")
+    p.add_argument("--split", choices=("train", "eval"), default="eval")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data directory (default: data)")
+    p.add_argument("--out", type=Path, help="output PNG (default: <split>_<id>_contact_sheet.png)")
+    p.set_defaults(func=_lazy("rigidbench.pipeline.render:cmd_show"))
+
+
+
 # -- parser --------------------------------------------------------------------------------------
 
 
@@ -151,9 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output directory (default data/<split>)")
     p.set_defaults(func=cmd_simulate)
 
-    from .pipeline.render import add_render_commands
-
-    add_render_commands(sub)
+    _add_render_commands(sub)
 
     p = sub.add_parser("inputs", help="write inputs.jsonl: first frame, prompt and negative prompt per example")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory (default data/eval)")

@@ -233,7 +233,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     """Score every selected example; see the module docstring for the files written."""
     from .groundtruth.bundle import Sample
     from .perception.base import Perception, PerceptionError, get_backend
-    from .video import VideoError, read_video, reference_times, resize_frames
+    from .perception.gt import state_path
+    from .video import VideoError, align_video, read_video, reference_times, resize_frames
 
     pred_dir, data_dir, out_dir = Path(pred_dir), Path(data_dir), Path(out_dir)
     if not pred_dir.is_dir():
@@ -263,8 +264,6 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             pred = find_prediction(pred_dir, sample_id)
             if pred is None:
                 raise EvaluationError(f"{sample_id}: no prediction {sample_id}.mp4 (or .webm/.mov/...) in {pred_dir}")
-            from .perception.gt import state_path
-
             state = state_path(pred)
             pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")
             ref_key = reference_hash(ref_dir)
@@ -298,8 +297,6 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             timings["perception_s"] += time.time() - t0
             ref_times = reference_times(sample.n_frames, sample.fps)
             aligned = perceived.aligned(ref_times)
-            from .video import align_video
-
             gen_rgb = align_video(video, ref_times)
             t0 = time.time()
             scores = score_example(sample, gen_rgb, aligned, nets)

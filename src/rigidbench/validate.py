@@ -13,6 +13,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rigidbench.perception.gt import STATE_SUFFIX
 from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, VIDEO_EXTENSIONS, VideoError,
                               VideoInfo, check_decodable, probe_video)
 
@@ -119,6 +120,8 @@ def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, lis
     for entry in sorted(pred_dir.iterdir()):
         if entry.name.startswith("."):
             continue  # hidden files, including half-written temporaries
+        if entry.name.endswith(STATE_SUFFIX):
+            continue  # world state written by built-in predictors beside their videos
         if entry.stem not in report.references:
             report.add(WARNING, "extra", f"{entry.name}: '{entry.stem}' is not an example id in the data "
                        "directory; ignored", None, entry)

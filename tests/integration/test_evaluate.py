@@ -42,7 +42,7 @@ def test_reference_against_itself_is_perfect(data_dir, tmp_path):
     for name in ("centroid_l2", "chamfer", "ate", "si_mse", "bgdrift"):
         assert overall[name]["mean"] == pytest.approx(0.0, abs=1e-9), name
     # Not exactly 0: depth is sampled bilinearly between pixels of a 256x144 Z pass near object edges.
-    assert overall["ate3d"]["mean"] == pytest.approx(0.0, abs=5e-3)
+    assert overall["ate3d"]["mean"] == pytest.approx(0.0, abs=2e-3)
     assert overall["ate3d"]["finite"] == 2
     # Measurements without their networks are reported as skipped, and the run is not official.
     assert summary.results["official"] is False and "lpips" in summary.results["skipped_metrics"]

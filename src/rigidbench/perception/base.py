@@ -25,6 +25,20 @@ class PerceptionError(Exception):
     """Perception could not run for an example; names the example and what to do."""
 
 
+def save_arrays(obj, path: str | Path) -> None:
+    """Write every field of an array dataclass to a compressed .npz, atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **{f.name: getattr(obj, f.name) for f in fields(obj)})
+    tmp.replace(path)
+
+
+def load_arrays(cls, path: str | Path):
+    """Read an array dataclass written by ``save_arrays`` (no pickles)."""
+    with np.load(path, allow_pickle=False) as z:
+        return cls(**{f.name: z[f.name] for f in fields(cls)})
+
+
 @dataclass
 class Perception:
     """Per-frame quantities recovered from a generated clip (T frames at ``times_s``).
@@ -49,15 +63,11 @@ class Perception:
         return int(self.times_s.shape[0])
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(tmp, **{f.name: getattr(self, f.name) for f in fields(self)})
-        tmp.replace(path)
+        save_arrays(self, path)
 
     @classmethod
     def load(cls, path: str | Path) -> "Perception":
-        with np.load(path, allow_pickle=False) as z:
-            return cls(**{f.name: z[f.name] for f in fields(cls)})
+        return load_arrays(cls, path)
 
     def aligned(self, ref_times_s: np.ndarray) -> "Perception":
         """Resample to the reference timestamps that fall within this clip (paper, appendix B.1)."""

@@ -22,12 +22,12 @@ image and not covered by an actor, else 0.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .base import Perception, PerceptionError
+from .base import Perception, PerceptionError, load_arrays, save_arrays
 
 STATE_SUFFIX = ".state.npz"
 
@@ -43,16 +43,12 @@ class WorldState:
     bg_flow: np.ndarray
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(tmp, **{f.name: getattr(self, f.name) for f in fields(self)})
-        tmp.replace(path)
+        save_arrays(self, path)
 
     @classmethod
     def load(cls, path: str | Path) -> "WorldState":
         try:
-            with np.load(path, allow_pickle=False) as z:
-                return cls(**{f.name: z[f.name] for f in fields(cls)})
+            return load_arrays(cls, path)
         except (OSError, KeyError, ValueError) as exc:
             raise PerceptionError(f"{path}: not a readable world-state file ({exc}); rerun the predictor "
                                   "that wrote it") from None

@@ -379,29 +379,5 @@ def cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_render_commands(subparsers: Any) -> None:
-    """Register ``render`` and ``show`` on the ``rigidbench`` subparsers."""
-    p = subparsers.add_parser("render", help="simulate and render examples into sample bundles "
-                                             "(DATA/<split>/<id>/); reruns skip complete bundles")
-    p.add_argument("--split", choices=("train", "eval"), default="eval", help="manifest to draw examples from")
-    p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 (default: all)")
-    p.add_argument("--limit", type=int, help="only the first N selected examples")
-    p.add_argument("--quality", default="paper", help="render preset: paper, preview or test (configs/render.yaml)")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data directory (default: data)")
-    p.add_argument("--workers", type=int, default=1, help="examples rendered at once, one process each (default 1)")
-    p.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
-                   help="Cycles device: auto picks OptiX, then CUDA, then the CPU (default auto)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.set_defaults(func=cmd_render)
-
-    p = subparsers.add_parser("show", help="write a PNG contact sheet of a rendered example "
-                                           "(frames, masks, depth, ground-truth tracks)")
-    p.add_argument("id", help="sample id, e.g. 00000")
-    p.add_argument("--split", choices=("train", "eval"), default="eval")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data directory (default: data)")
-    p.add_argument("--out", type=Path, help="output PNG (default: <split>_<id>_contact_sheet.png)")
-    p.set_defaults(func=cmd_show)
-
-
 __all__ = ["Failure", "bundle_dir", "is_complete", "write_bundle", "render_spec", "render_to_bundle", "render_rows",
-           "cmd_render", "cmd_show", "add_render_commands", "QUALITIES"]
+           "cmd_render", "cmd_show", "QUALITIES"]

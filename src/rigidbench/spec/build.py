@@ -19,7 +19,7 @@ Placement operations (task YAML ``steps``):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -231,8 +231,6 @@ def _descends_plus(ramp: Body) -> bool:
 
 
 def _with_position(body: Body, position) -> Body:
-    from dataclasses import replace
-
     return replace(body, position_m=tuple(float(v) for v in position))
 
 

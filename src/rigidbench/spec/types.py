@@ -117,10 +117,6 @@ class SceneSpec:
     # -- derived views -----------------------------------------------------------------------
 
     @property
-    def actors(self) -> tuple[Body, ...]:
-        return self.bodies
-
-    @property
     def active(self) -> tuple[Body, ...]:
         return tuple(b for b in self.bodies if b.role == "active")
 
