@@ -262,15 +262,12 @@ def test_check_bundle_reports_damage(rendered, tmp_path):
 
 
 def test_show_writes_contact_sheet(rendered, tmp_path):
-    import argparse
-
     from PIL import Image
 
-    from rigidbench.pipeline.render import add_render_commands
+    from rigidbench.cli import build_parser
 
     path, _ = rendered["ramp_collision"]
-    parser = argparse.ArgumentParser()
-    add_render_commands(parser.add_subparsers(dest="command"))
+    parser = build_parser()
     out = tmp_path / "sheet.png"
     args = parser.parse_args(["show", path.name, "--split", "eval", "--data", str(path.parents[1]), "--out", str(out)])
     assert args.func(args) == 0
@@ -352,13 +349,9 @@ def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows
 
 
 def test_render_command_rejects_unknown_ids(tmp_path):
-    import argparse
+    from rigidbench.cli import UserError, build_parser
 
-    from rigidbench.cli import UserError
-    from rigidbench.pipeline.render import add_render_commands
-
-    parser = argparse.ArgumentParser()
-    add_render_commands(parser.add_subparsers(dest="command"))
+    parser = build_parser()
     args = parser.parse_args(["render", "--split", "eval", "--ids", "99999", "--data", str(tmp_path)])
     with pytest.raises(UserError, match="99999"):
         args.func(args)
