@@ -1,0 +1,246 @@
+"""The report's figures as PNG and PDF (matplotlib `Figure` objects, no pyplot state, Agg rendering).
+
+- ssim_vs_ate3d: model means on SSIM and ATE-3D (ATE-3D axis reversed) with the correlation of SSIM
+  and negative ATE-3D across models in the title (paper figure "Model and task results", left);
+- ate3d_by_task: one horizontal bar per model within each task, with 95% intervals (right panel);
+- metric_intervals: mean and 95% interval of every model on all ten measurements;
+- poi_heatmaps: probability that the row model beats the column model on matched examples, one
+  panel per measurement, rows and columns ordered by model mean, best first; bold entries have an
+  interval excluding 0.5.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rigidbench.metrics import METRICS
+from rigidbench.report.analysis import ReportData, task_label
+from rigidbench.report.tables import DISPLAY_SCALE, metric_label
+
+log = logging.getLogger(__name__)
+
+DPI = 150
+
+
+@dataclass(frozen=True)
+class FigureFile:
+    """One written figure: `png` and `pdf` paths, with the title and caption the HTML shows."""
+
+    key: str
+    title: str
+    caption: str
+    png: Path
+    pdf: Path
+    width_in: float
+
+
+def _new_figure(width_in: float, height_in: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width_in, height_in), layout="constrained")
+
+
+def _save(fig, out_dir: Path, key: str, title: str, caption: str) -> FigureFile:
+    png, pdf = out_dir / f"{key}.png", out_dir / f"{key}.pdf"
+    fig.savefig(png, dpi=DPI)
+    # The constrained layout is resolution-independent: keep the one just computed for the PDF
+    # instead of solving it again (the solve is most of the drawing time).
+    fig.set_layout_engine("none")
+    fig.savefig(pdf, metadata={"CreationDate": None})
+    return FigureFile(key, title, caption, png, pdf, float(fig.get_figwidth()))
+
+
+def model_colors(n_models: int) -> list:
+    """One distinct colour per model, the same in every figure."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab10" if n_models <= 10 else "tab20"]
+    return [cmap(i % cmap.N) for i in range(n_models)]
+
+
+def _errors(mean: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """mean, lo, hi: (M,). Returns (2, M) non-negative error-bar lengths, 0 where the interval is undefined."""
+    err = np.stack([mean - lo, hi - mean])
+    return np.where(np.isfinite(err), np.maximum(err, 0.0), 0.0)
+
+
+def correlation_title(corr: dict | None) -> str:
+    """Figure title text for the SSIM / negative ATE-3D correlation across model means."""
+    if corr is None:
+        return "correlation needs at least 2 models with finite SSIM and ATE-3D"
+
+    def one(name: str, key: str) -> str:
+        value = corr[key]
+        if not math.isfinite(value):
+            return f"{name} undefined"
+        text = f"{name} = {value:+.2f}"
+        lo, hi = corr[f"{key}_ci"]
+        if corr.get("has_ci") and math.isfinite(lo) and math.isfinite(hi):
+            text += f" [{lo:+.2f}, {hi:+.2f}]"
+        return text
+
+    suffix = "" if corr.get("has_ci") else " (no interval with < 3 models)"
+    return (f"SSIM vs −ATE-3D across {corr['n_models']} model means\n{one('Pearson r', 'pearson')}, "
+            f"{one('Spearman ρ', 'spearman')}{suffix}")
+
+
+def ssim_vs_ate3d(data: ReportData, out_dir: Path) -> FigureFile:
+    """Scatter of model means, SSIM against ATE-3D with the ATE-3D axis reversed."""
+    t = data.table
+    ks, ka = t.metric_index("ssim"), t.metric_index("ate3d")
+    o = data.overall
+    colors = model_colors(len(t.models))
+    fig = _new_figure(7.0, 5.0)
+    ax = fig.add_subplot()
+    for m, model in enumerate(t.models):
+        x, y = o.mean[m, ka], o.mean[m, ks]
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        xerr = _errors(o.mean[m:m + 1, ka], o.lo[m:m + 1, ka], o.hi[m:m + 1, ka])
+        yerr = _errors(o.mean[m:m + 1, ks], o.lo[m:m + 1, ks], o.hi[m:m + 1, ks])
+        ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=colors[m], capsize=3, label=model)
+        ax.annotate(model, (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    ax.invert_xaxis()
+    ax.set_xlabel("ATE-3D ↓ (axis reversed: better to the right)")
+    ax.set_ylabel("SSIM ↑")
+    ax.grid(alpha=0.3)
+    ax.set_title(correlation_title(data.correlation), fontsize=9)
+    caption = ("Model means with 95% bootstrap intervals over examples. The ATE-3D axis is reversed, and the "
+               "correlation is computed against negative ATE-3D; its interval resamples models "
+               f"({data.resamples:,} resamples, shown with at least 3 models).")
+    return _save(fig, out_dir, "ssim_vs_ate3d", "SSIM against ATE-3D", caption)
+
+
+def ate3d_by_task(data: ReportData, out_dir: Path, metric: str = "ate3d") -> FigureFile:
+    """Horizontal bars: one per model within each task, mean with 95% interval."""
+    t = data.table
+    k = t.metric_index(metric)
+    n_models, n_tasks = len(t.models), len(data.tasks)
+    colors = model_colors(n_models)
+    fig = _new_figure(7.5, 1.2 + 0.16 * n_tasks * (n_models + 1))
+    ax = fig.add_subplot()
+    iv = data.by_task
+    for m, model in enumerate(t.models):
+        y = np.arange(n_tasks) * (n_models + 1) + m
+        mean = iv.mean[m, :, k]
+        ok = np.isfinite(mean)
+        ax.barh(y[ok], mean[ok], xerr=_errors(mean, iv.lo[m, :, k], iv.hi[m, :, k])[:, ok], color=colors[m],
+                height=0.85, capsize=2, label=model, error_kw={"elinewidth": 0.8})
+    ax.set_yticks(np.arange(n_tasks) * (n_models + 1) + (n_models - 1) / 2, [task_label(x) for x in data.tasks])
+    ax.invert_yaxis()
+    name = METRICS[metric].display_name
+    ax.set_xlabel(f"{name} {'↑' if METRICS[metric].higher_is_better else '↓'}")
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    caption = (f"Mean {name} for each model and task with 95% bootstrap intervals; bars within each task follow "
+               "the order of the key.")
+    return _save(fig, out_dir, f"{metric}_by_task", f"{name} by task", caption)
+
+
+def metric_intervals(data: ReportData, out_dir: Path) -> FigureFile:
+    """One panel per measurement: every model's mean with its 95% interval, models in a fixed order."""
+    t = data.table
+    n_models, n_metrics = len(t.models), len(t.metrics)
+    ncols = min(5, n_metrics)
+    nrows = math.ceil(n_metrics / ncols)
+    colors = model_colors(n_models)
+    fig = _new_figure(2.6 * ncols + 1.2, nrows * (0.9 + 0.28 * n_models))
+    axes = fig.subplots(nrows, ncols, squeeze=False, sharey=True)
+    from matplotlib.ticker import MaxNLocator
+
+    o = data.overall
+    y = np.arange(n_models)
+    for k, metric in enumerate(t.metrics):
+        ax = axes.flat[k]
+        scale = DISPLAY_SCALE.get(metric, 1.0)
+        mean = o.mean[:, k] * scale
+        err = _errors(mean, o.lo[:, k] * scale, o.hi[:, k] * scale)
+        for m in range(n_models):
+            if math.isfinite(mean[m]):
+                ax.errorbar([mean[m]], [y[m]], xerr=err[:, m:m + 1], fmt="o", color=colors[m], capsize=3, ms=4)
+        if not np.isfinite(mean).any():
+            ax.text(0.5, 0.5, "skipped" if t.skipped[:, k].all() else "no finite values", transform=ax.transAxes,
+                    ha="center", va="center", color="0.4")
+        arrow = "↑" if METRICS[metric].higher_is_better else "↓"
+        ax.set_title(f"{metric_label(metric)} {arrow}", fontsize=10)
+        ax.grid(axis="x", alpha=0.3)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
+        ax.tick_params(axis="x", labelsize=7)
+        ax.tick_params(axis="y", labelsize=8)
+    for ax in axes.flat[n_metrics:]:
+        ax.set_visible(False)
+    axes[0, 0].set_yticks(y, list(t.models))
+    axes[0, 0].set_ylim(n_models - 0.5, -0.5)
+    caption = ("Points are model means and bars 95% percentile bootstrap intervals over evaluation examples "
+               f"({data.resamples:,} resamples). Models follow the same row order in every panel."
+               + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
+    return _save(fig, out_dir, "metric_intervals", "Uncertainty across all measurements", caption)
+
+
+def best_first_order(means: np.ndarray, higher: bool) -> np.ndarray:
+    """means: (M,) float. Returns (M,) int model order, best mean first, models without a mean last."""
+    key = np.where(np.isfinite(means), -means if higher else means, np.inf)
+    return np.argsort(key, kind="stable")
+
+
+def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:
+    """Grid of (M, M) probability-of-improvement panels, one per measurement; None with one model."""
+    t = data.table
+    n_models, n_metrics = len(t.models), len(t.metrics)
+    if n_models < 2:
+        return None
+    import matplotlib
+
+    ncols = 5 if n_models <= 3 else 3 if n_models <= 8 else 2
+    nrows = math.ceil(n_metrics / ncols)
+    side = max(2.6, 0.45 * n_models + 1.4)
+    fig = _new_figure(side * ncols + 0.8, side * nrows)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    cmap = matplotlib.colormaps["RdBu"].with_extremes(bad="0.9")
+    image = None
+    font = max(5.0, 9.0 - 0.4 * n_models)
+    for k, (metric, pm) in enumerate(zip(t.metrics, data.poi_matrices)):
+        ax = axes.flat[k]
+        order = best_first_order(data.overall.mean[:, k], METRICS[metric].higher_is_better)
+        est = pm.estimate[np.ix_(order, order)].copy()
+        np.fill_diagonal(est, np.nan)
+        image = ax.imshow(est, cmap=cmap, vmin=0.0, vmax=1.0)
+        for i in range(n_models):
+            for j in range(n_models):
+                if i != j and math.isfinite(est[i, j]):
+                    sig = bool(pm.significant[order[i], order[j]])
+                    ax.text(j, i, f"{est[i, j]:.2f}", ha="center", va="center", fontsize=font,
+                            fontweight="bold" if sig else "normal",
+                            color="white" if abs(est[i, j] - 0.5) > 0.3 else "black")
+        labels = [t.models[i] for i in order]
+        ax.set_xticks(range(n_models), labels, rotation=60, ha="right", fontsize=font)
+        ax.set_yticks(range(n_models), labels, fontsize=font)
+        arrow = "↑" if METRICS[metric].higher_is_better else "↓"
+        title = f"{METRICS[metric].display_name} {arrow}"
+        if t.skipped[:, k].all():
+            title += " (skipped)"
+        ax.set_title(title, fontsize=10)
+    for ax in axes.flat[n_metrics:]:
+        ax.set_visible(False)
+    if image is not None:
+        fig.colorbar(image, ax=list(axes.flat[:n_metrics]), shrink=0.6, label="P(row model better than column)")
+    caption = ("Each cell is the probability that the row model is better than the column model on the same "
+               "example (ties count one half). Rows and columns are ordered by the model mean, best first. Bold "
+               f"entries have a paired bootstrap 95% interval ({data.resamples:,} resamples) that excludes 0.5.")
+    return _save(fig, out_dir, "poi_heatmaps", "Matched probability of improvement", caption)
+
+
+def build_figures(data: ReportData, out_dir: Path) -> list[FigureFile]:
+    """Write every figure as PNG and PDF into out_dir. Returns them in display order."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figures = [ssim_vs_ate3d(data, out_dir), ate3d_by_task(data, out_dir), metric_intervals(data, out_dir)]
+    heatmaps = poi_heatmaps(data, out_dir)
+    if heatmaps is not None:
+        figures.append(heatmaps)
+    log.info("wrote %d figures to %s", len(figures), out_dir)
+    return figures

@@ -1,0 +1,426 @@
+"""The report's tables as one cell model, rendered to Markdown, LaTeX (booktabs) and HTML, plus tidy CSV.
+
+Tables mirror the paper: model x ten metrics (mean and 95% bootstrap interval, best bold and
+second-best underlined in each column), ATE-3D by task, all metrics by evaluation partition, and
+paired changes against a baseline with the probability of improvement. A mean taken over fewer
+than all examples carries its finite count ("0.123 (n=97)"). CSV files hold the unrounded,
+unscaled numbers in long form (one row per model and metric) and round-trip exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rigidbench.metrics import METRICS
+from rigidbench.report.analysis import ReportData, partition_label, rank_marks, task_label
+
+# Display-only scale factors (the paper prints BGDrift x 10^3); CSV files stay unscaled.
+DISPLAY_SCALE = {"bgdrift": 1e3}
+# The paper's two column groups of the model table: six object measurements, four image measurements.
+METRIC_GROUPS = (("Object motion and geometry", 6), ("Visual similarity and stability", 4))
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One table entry: main `text`, optional interval `detail` and count `note`; `mark` best/second/significant."""
+
+    text: str
+    detail: str = ""
+    note: str = ""
+    mark: str = ""
+
+
+@dataclass(frozen=True)
+class Table:
+    """A rendered-agnostic table; `groups` span the header columns after the first `n_label_columns`."""
+
+    key: str
+    title: str
+    caption: str
+    header: tuple[str, ...]
+    arrows: tuple[str, ...]
+    rows: tuple[tuple[Cell, ...], ...]
+    n_label_columns: int = 1
+    groups: tuple[tuple[str, int], ...] = ()
+    row_breaks: tuple[int, ...] = field(default=())
+
+
+# ------------------------------------------------------------------------------- number formats
+
+
+def decimals_for(values) -> int:
+    """values: array-like float. Returns decimals giving ~3 significant digits at their median magnitude."""
+    arr = np.abs(np.asarray(values, dtype=np.float64).ravel())
+    arr = arr[np.isfinite(arr) & (arr > 0)]
+    if arr.size == 0:
+        return 3
+    return int(np.clip(2 - math.floor(math.log10(float(np.median(arr)))), 0, 8))
+
+
+def fmt(x: float, decimals: int, signed: bool = False) -> str:
+    """x to `decimals` places; signed keeps the sign of a tiny change ('-0.000', as the paper prints it)."""
+    if not math.isfinite(x):
+        return "n/a"
+    if signed:
+        return f"{x:+.{decimals}f}"
+    return f"{abs(x) if float(f'{x:.{decimals}f}') == 0.0 else x:.{decimals}f}"
+
+
+def interval_text(lo: float, hi: float, decimals: int, signed: bool = False) -> str:
+    """'[lo, hi]' at `decimals` places, or '' when the interval is undefined (fewer than two examples)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return ""
+    return f"[{fmt(lo, decimals, signed)}, {fmt(hi, decimals, signed)}]"
+
+
+def metric_label(metric: str) -> str:
+    """Display name with its display scale, e.g. 'BGDrift×10³'."""
+    name = METRICS[metric].display_name
+    return name + "\u00d710\u00b3" if DISPLAY_SCALE.get(metric) == 1e3 else name
+
+
+def metric_arrow(metric: str) -> str:
+    return "up" if METRICS[metric].higher_is_better else "down"
+
+
+def value_cell(mean: float, lo: float, hi: float, n_finite: int, n_total: int, decimals: int, mark: str = "",
+               skipped: bool = False, with_interval: bool = True, scale: float = 1.0) -> Cell:
+    """One mean with its interval and, when some examples were non-finite, its finite count."""
+    if skipped:
+        return Cell("skipped")
+    note = f"n={n_finite}" if n_finite < n_total else ""
+    if n_finite == 0:
+        return Cell("n/a", note=note)
+    detail = interval_text(lo * scale, hi * scale, decimals) if with_interval else ""
+    return Cell(fmt(mean * scale, decimals), detail, note, mark)
+
+
+# ------------------------------------------------------------------------------------- builders
+
+
+def model_table(data: ReportData) -> Table:
+    """Model x ten metrics: mean [95% CI], best / second-best per metric marked."""
+    t = data.table
+    n = len(t.example_ids)
+    rows = []
+    columns = []
+    for k, metric in enumerate(t.metrics):
+        scale = DISPLAY_SCALE.get(metric, 1.0)
+        decimals = decimals_for(data.overall.mean[:, k] * scale)
+        marks = rank_marks(data.overall.mean[:, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
+        columns.append([value_cell(data.overall.mean[m, k], data.overall.lo[m, k], data.overall.hi[m, k],
+                                   int(data.overall.n_finite[m, k]), n, decimals, marks[m], bool(t.skipped[m, k]),
+                                   scale=scale) for m in range(len(t.models))])
+    for m, model in enumerate(t.models):
+        rows.append((Cell(model),) + tuple(col[m] for col in columns))
+    unranked = [name for name, r in zip(t.models, data.ranked) if not r]
+    caption = (f"Means over the {n} evaluation examples with 95% percentile bootstrap intervals "
+               f"({data.resamples:,} resamples over examples), omitting non-finite measurements; "
+               "n=... gives the finite count where some were non-finite. Best and second-best values per "
+               "metric are bold and underlined (arrows give the better direction)."
+               + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else "")
+               + (f" {', '.join(unranked)} is shown for comparison and not ranked." if unranked else ""))
+    groups = METRIC_GROUPS if t.metrics == tuple(METRICS) else ()
+    return Table("model_metrics", "Model comparison", caption, ("Model",) + tuple(metric_label(m) for m in t.metrics),
+                 ("",) + tuple(metric_arrow(m) for m in t.metrics), tuple(rows), groups=groups)
+
+
+def task_table(data: ReportData, metric: str = "ate3d") -> Table:
+    """Model x task for one metric (default ATE-3D): mean [95% CI], best / second-best per task."""
+    t = data.table
+    k = t.metric_index(metric)
+    counts = {task: int(np.sum(t.tasks == task)) for task in data.tasks}
+    decimals = decimals_for(data.by_task.mean[:, :, k])
+    columns = []
+    for g, task in enumerate(data.tasks):
+        iv = data.by_task
+        marks = rank_marks(iv.mean[:, g, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
+        columns.append([value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k], int(iv.n_finite[m, g, k]),
+                                   counts[task], decimals, marks[m], bool(t.skipped[m, k]))
+                        for m in range(len(t.models))])
+    rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
+    name = METRICS[metric].display_name
+    direction = "Higher" if METRICS[metric].higher_is_better else "Lower"
+    caption = (f"{name} by task. Each cell is the mean over that task's examples "
+               f"({', '.join(f'{task_label(x)}: {counts[x]}' for x in data.tasks)}) with its 95% bootstrap interval. "
+               f"{direction} is better; best and second-best values are bold and underlined.")
+    return Table(f"{metric}_by_task", f"{name} by task", caption, ("Model",) + tuple(task_label(x) for x in data.tasks),
+                 ("",) + (metric_arrow(metric),) * len(data.tasks), rows)
+
+
+def partition_table(data: ReportData) -> Table:
+    """(partition, model) x ten metrics: means only (intervals in the CSV), marks within each partition."""
+    t = data.table
+    iv = data.by_partition
+    decimals = [decimals_for(iv.mean[:, :, k] * DISPLAY_SCALE.get(metric, 1.0)) for k, metric in enumerate(t.metrics)]
+    rows, breaks = [], []
+    for g, part in enumerate(data.partitions):
+        n = int(np.sum(t.partitions == part))
+        breaks.append(len(rows))
+        marks = [rank_marks(iv.mean[:, g, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
+                 for k, metric in enumerate(t.metrics)]
+        for m, model in enumerate(t.models):
+            cells = tuple(value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k], int(iv.n_finite[m, g, k]), n,
+                                     decimals[k], marks[k][m], bool(t.skipped[m, k]), with_interval=False,
+                                     scale=DISPLAY_SCALE.get(metric, 1.0))
+                          for k, metric in enumerate(t.metrics))
+            label = f"{partition_label(part)} ({n})" if m == 0 else ""
+            rows.append((Cell(label), Cell(model)) + cells)
+    caption = ("All measurements by evaluation partition (ID: training scenes and objects; Scene, Object, Both: "
+               "held-out scenes, objects or both; examples per partition in parentheses). Means only; the 95% "
+               "intervals are in by_partition.csv. Best and second-best within each partition are bold and "
+               "underlined." + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
+    return Table("by_partition", "Measurements by evaluation partition", caption,
+                 ("Partition", "Model") + tuple(metric_label(m) for m in t.metrics),
+                 ("", "") + tuple(metric_arrow(m) for m in t.metrics), tuple(rows), n_label_columns=2,
+                 row_breaks=tuple(breaks[1:]))
+
+
+def paired_table(data: ReportData) -> Table | None:
+    """(model, metric) rows: mean paired change vs the baseline and PoI over it, each with 95% CI; None for one run."""
+    t = data.table
+    if len(t.models) < 2:
+        return None
+    base = t.models[data.baseline]
+    d, p = data.paired_diff, data.paired_poi
+    rows, breaks = [], []
+    others = [m for m in range(len(t.models)) if m != data.baseline]
+    for m in others:
+        breaks.append(len(rows))
+        for k, metric in enumerate(t.metrics):
+            scale = DISPLAY_SCALE.get(metric, 1.0)
+            if t.skipped[m, k] or t.skipped[data.baseline, k]:
+                cells = (Cell("skipped"), Cell(""), Cell("skipped"), Cell(""), Cell("0"))
+            else:
+                dec = decimals_for(np.array([d.mean[:, k], d.lo[:, k], d.hi[:, k]]) * scale)
+                diff_sig = "significant" if (d.lo[m, k] > 0 or d.hi[m, k] < 0) else ""
+                poi_sig = "significant" if (p.lo[m, k] > 0.5 or p.hi[m, k] < 0.5) else ""
+                cells = (Cell(fmt(d.mean[m, k] * scale, dec, signed=True), mark=diff_sig),
+                         Cell(interval_text(d.lo[m, k] * scale, d.hi[m, k] * scale, dec, signed=True)),
+                         Cell(fmt(p.mean[m, k], 2), mark=poi_sig), Cell(interval_text(p.lo[m, k], p.hi[m, k], 2)),
+                         Cell(str(int(d.n_finite[m, k]))))
+            rows.append((Cell(t.models[m] if k == 0 else ""), Cell(metric_label(metric))) + cells)
+    caption = (f"Paired changes against {base} on matched examples: mean of (model − {base}) and the probability "
+               f"of improvement PoI (fraction of examples on which the model is better than {base}, ties counting "
+               f"one half), each with a paired 95% bootstrap interval ({data.resamples:,} resamples). Positive "
+               "changes are better for IoU and SSIM, negative for every other metric; bold entries have an "
+               "interval that excludes 0 (change) or 0.5 (PoI). n counts the examples finite for both models."
+               + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
+    return Table("paired_changes", f"Paired changes against {base}", caption,
+                 ("Model", "Metric", f"Δ vs {base}", "95% CI", "PoI", "95% CI", "n"),
+                 ("",) * 7, tuple(rows), n_label_columns=2, row_breaks=tuple(breaks[1:]))
+
+
+def build_tables(data: ReportData) -> list[Table]:
+    """Every table of the report, in display order."""
+    tables = [model_table(data), task_table(data), partition_table(data)]
+    paired = paired_table(data)
+    if paired is not None:
+        tables.append(paired)
+    return tables
+
+
+# ------------------------------------------------------------------------------------ renderers
+
+_ARROW_TEXT = {"up": " ↑", "down": " ↓", "": ""}
+_ARROW_TEX = {"up": r"$\uparrow$", "down": r"$\downarrow$", "": ""}
+
+
+def _md_escape(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def _md_cell(cell: Cell) -> str:
+    text = _md_escape(cell.text)
+    if cell.mark in ("best", "significant"):
+        text = f"**{text}**"
+    elif cell.mark == "second":
+        text = f"<u>{text}</u>"
+    parts = [text] + ([cell.detail] if cell.detail else []) + ([f"({cell.note})"] if cell.note else [])
+    return " ".join(parts)
+
+
+def to_markdown(table: Table) -> str:
+    """GitHub-flavoured Markdown: bold best, <u>underlined</u> second-best, caption below."""
+    header = [_md_escape(h) + _ARROW_TEXT[a] for h, a in zip(table.header, table.arrows)]
+    align = [":--"] * table.n_label_columns + ["--:"] * (len(header) - table.n_label_columns)
+    lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |"]
+    lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in table.rows]
+    lines += ["", table.caption, ""]
+    return "\n".join(lines)
+
+
+_TEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+                "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
+                "×": r"$\times$", "³": r"$^3$", "−": "$-$", "Δ": r"$\Delta$", "↑": r"$\uparrow$",
+                "↓": r"$\downarrow$"}
+
+
+def tex_escape(text: str) -> str:
+    """Escape LaTeX specials and map the few non-ASCII symbols the report uses to math."""
+    return "".join(_TEX_SPECIAL.get(ch, ch) for ch in text)
+
+
+def _tex_cell(cell: Cell) -> str:
+    text = tex_escape(cell.text)
+    if cell.mark in ("best", "significant"):
+        text = rf"\textbf{{{text}}}"
+    elif cell.mark == "second":
+        text = rf"\underline{{{text}}}"
+    if cell.detail:
+        text += rf"\,{{\scriptsize {tex_escape(cell.detail)}}}"
+    if cell.note:
+        text += rf"\,{{\scriptsize ({tex_escape(cell.note)})}}"
+    return text
+
+
+def to_latex(table: Table) -> str:
+    """A booktabs `table` environment (needs \\usepackage{booktabs,graphicx}); \\textbf best, \\underline second."""
+    n_cols = len(table.header)
+    spec = "l" * table.n_label_columns + "r" * (n_cols - table.n_label_columns)
+    lines = [r"\begin{table}[t]", r"  \centering", r"  \footnotesize", r"  \resizebox{\linewidth}{!}{%",
+             rf"  \begin{{tabular}}{{{spec}}}", r"    \toprule"]
+    if table.groups:
+        first = table.n_label_columns + 1
+        spans, rules = [], []
+        for label, width in table.groups:
+            spans.append(rf"\multicolumn{{{width}}}{{c}}{{{tex_escape(label)}}}")
+            rules.append(rf"\cmidrule(lr){{{first}-{first + width - 1}}}")
+            first += width
+        lines.append("    " + " & " * table.n_label_columns + " & ".join(spans) + r" \\")
+        lines.append("    " + "".join(rules))
+    lines.append("    " + " & ".join(tex_escape(h) + _ARROW_TEX[a] for h, a in zip(table.header, table.arrows))
+                 + r" \\")
+    lines.append(r"    \midrule")
+    for i, row in enumerate(table.rows):
+        if i in table.row_breaks:
+            lines.append(r"    \midrule")
+        lines.append("    " + " & ".join(_tex_cell(c) for c in row) + r" \\")
+    lines += [r"    \bottomrule", r"  \end{tabular}%", r"  }",
+              rf"  \caption{{\textbf{{{tex_escape(table.title)}.}} {tex_escape(table.caption)}}}",
+              rf"  \label{{tab:{table.key.replace('_', '-')}}}", r"\end{table}", ""]
+    return "\n".join(lines)
+
+
+def _html_cell(cell: Cell, tag: str = "td") -> str:
+    text = html.escape(cell.text)
+    if cell.mark in ("best", "significant"):
+        text = f"<strong>{text}</strong>"
+    elif cell.mark == "second":
+        text = f"<u>{text}</u>"
+    if cell.detail:
+        text += f' <span class="ci">{html.escape(cell.detail)}</span>'
+    if cell.note:
+        text += f' <span class="n">({html.escape(cell.note)})</span>'
+    css = ' class="skipped"' if cell.text in ("skipped", "n/a") else ""
+    return f"<{tag}{css}>{text}</{tag}>"
+
+
+def to_html(table: Table) -> str:
+    """An HTML <table> (classes for the page's inline CSS) followed by its caption."""
+    lines = ['<table class="results">', "<thead>"]
+    if table.groups:
+        cells = [f'<th colspan="{table.n_label_columns}"></th>']
+        cells += [f'<th colspan="{w}" class="group">{html.escape(label)}</th>' for label, w in table.groups]
+        lines.append("<tr>" + "".join(cells) + "</tr>")
+    lines.append("<tr>" + "".join(f'<th{" class=label" if i < table.n_label_columns else ""}>'
+                                  f"{html.escape(h + _ARROW_TEXT[a])}</th>"
+                                  for i, (h, a) in enumerate(zip(table.header, table.arrows))) + "</tr>")
+    lines += ["</thead>", "<tbody>"]
+    for i, row in enumerate(table.rows):
+        css = ' class="break"' if i in table.row_breaks else ""
+        label_cells = "".join(f'<th scope="row">{html.escape(c.text)}</th>' for c in row[:table.n_label_columns])
+        lines.append(f"<tr{css}>" + label_cells + "".join(_html_cell(c) for c in row[table.n_label_columns:])
+                     + "</tr>")
+    lines += ["</tbody>", "</table>", f'<p class="caption">{html.escape(table.caption)}</p>']
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ CSV
+
+
+def _num(x) -> str:
+    """Float as its shortest round-tripping repr; NaN as an empty field."""
+    x = float(x)
+    return repr(x) if math.isfinite(x) else ""
+
+
+def _write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        writer.writerows(rows)
+    return path
+
+
+def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
+    """Long-form CSV files of every statistic (unscaled, full precision). Returns the paths written."""
+    t = data.table
+    n = len(t.example_ids)
+    hib = [METRICS[m].higher_is_better for m in t.metrics]
+    paths = []
+    rows = []
+    for k, metric in enumerate(t.metrics):
+        marks = rank_marks(data.overall.mean[:, k], hib[k], data.ranked & ~t.skipped[:, k])
+        for m, model in enumerate(t.models):
+            o = data.overall
+            rows.append([model, metric, int(hib[k]), _num(o.mean[m, k]), _num(o.lo[m, k]), _num(o.hi[m, k]),
+                         int(o.n_finite[m, k]), n, int(t.skipped[m, k]), marks[m]])
+    paths.append(_write_csv(out_dir / "model_metrics.csv", ["model", "metric", "higher_is_better", "mean", "ci_low",
+                                                            "ci_high", "n_finite", "n_examples", "skipped", "mark"],
+                            rows))
+    for key, labels, names, iv in (("by_task", t.tasks, data.tasks, data.by_task),
+                                   ("by_partition", t.partitions, data.partitions, data.by_partition)):
+        rows = []
+        for g, group in enumerate(names):
+            n_group = int(np.sum(labels == group))
+            for k, metric in enumerate(t.metrics):
+                marks = rank_marks(iv.mean[:, g, k], hib[k], data.ranked & ~t.skipped[:, k])
+                for m, model in enumerate(t.models):
+                    rows.append([model, group, metric, _num(iv.mean[m, g, k]), _num(iv.lo[m, g, k]),
+                                 _num(iv.hi[m, g, k]), int(iv.n_finite[m, g, k]), n_group, marks[m]])
+        column = key.removeprefix("by_")
+        paths.append(_write_csv(out_dir / f"{key}.csv", ["model", column, "metric", "mean", "ci_low", "ci_high",
+                                                         "n_finite", "n_examples", "mark"], rows))
+    if len(t.models) >= 2:
+        d, p = data.paired_diff, data.paired_poi
+        rows = [[t.models[m], t.models[data.baseline], metric, int(hib[k]), _num(d.mean[m, k]), _num(d.lo[m, k]),
+                 _num(d.hi[m, k]), _num(p.mean[m, k]), _num(p.lo[m, k]), _num(p.hi[m, k]), int(d.n_finite[m, k])]
+                for m in range(len(t.models)) if m != data.baseline for k, metric in enumerate(t.metrics)]
+        paths.append(_write_csv(out_dir / "paired_changes.csv",
+                                ["model", "baseline", "metric", "higher_is_better", "diff_mean", "diff_ci_low",
+                                 "diff_ci_high", "poi", "poi_ci_low", "poi_ci_high", "n_matched"], rows))
+        rows = [[metric, t.models[i], t.models[j], _num(pm.estimate[i, j]), _num(pm.lo[i, j]), _num(pm.hi[i, j]),
+                 int(pm.n_matched[i, j]), int(bool(pm.significant[i, j]))]
+                for metric, pm in zip(t.metrics, data.poi_matrices)
+                for i in range(len(t.models)) for j in range(len(t.models)) if i != j]
+        paths.append(_write_csv(out_dir / "poi_matrix.csv", ["metric", "model", "opponent", "poi", "ci_low", "ci_high",
+                                                             "n_matched", "significant"], rows))
+    c = data.correlation
+    if c is not None:
+        ci_p = c["pearson_ci"] if c["has_ci"] else (math.nan, math.nan)
+        ci_s = c["spearman_ci"] if c["has_ci"] else (math.nan, math.nan)
+        paths.append(_write_csv(out_dir / "correlation.csv",
+                                ["x", "y", "n_models", "pearson", "pearson_ci_low", "pearson_ci_high", "spearman",
+                                 "spearman_ci_low", "spearman_ci_high"],
+                                [["ssim", "-ate3d", c["n_models"], _num(c["pearson"]), _num(ci_p[0]), _num(ci_p[1]),
+                                  _num(c["spearman"]), _num(ci_s[0]), _num(ci_s[1])]]))
+    return paths
+
+
+def write_tables(tables: list[Table], out_dir: Path) -> dict[str, dict[str, Path]]:
+    """Write each table as <key>.md and <key>.tex. Returns key -> {'md': path, 'tex': path}."""
+    written = {}
+    for table in tables:
+        md = out_dir / f"{table.key}.md"
+        tex = out_dir / f"{table.key}.tex"
+        md.write_text(to_markdown(table))
+        tex.write_text(to_latex(table))
+        written[table.key] = {"md": md, "tex": tex}
+    return written
