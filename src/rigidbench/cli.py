@@ -119,7 +119,13 @@ def cmd_predict(args) -> int:
 def cmd_demo(args) -> int:
     from .pipeline.demo import run_demo
 
-    return run_demo(args.out, quality=args.quality)
+    modes = [m for chunk in (args.modes or []) for m in _ids(chunk)] or None
+    kwargs = {"modes": modes} if modes else {}
+    try:
+        return run_demo(args.out, quality=args.quality, severity=args.severity, perception=args.perception,
+                        report=not args.no_report, **kwargs)
+    except KeyError as exc:
+        raise UserError(exc.args[0]) from None
 
 
 def _lazy(target: str):
@@ -195,8 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_inputs)
 
     p = sub.add_parser("predict", help="run a built-in predictor (failure mode) over the reference examples")
-    p.add_argument("name", help="reference, static, slow, fast, delayed, gamma, camera-shake, camera-drift, "
-                                "background-wobble")
+    p.add_argument("name", help="image space: reference, static, slow, fast, delayed, gamma, camera-shake, "
+                                "camera-drift, background-wobble, identity-swap; re-simulated and re-rendered: "
+                                "gravity, restitution, friction, mass, depth-offset")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
     p.add_argument("--out", type=Path, help="output directory (default predictions/NAME)")
     p.add_argument("--severity", type=float, default=1.0, help="0 = the reference, 1 = strong (default 1)")
@@ -212,16 +219,41 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="score predictions against the reference with the ten measurements")
     p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files (predictions/MODEL)")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
-    p.add_argument("--perception", choices=("gt",), default="gt",
-                   help="gt: exact world state written by built-in predictors")
+    p.add_argument("--perception", choices=("gt", "neural"), default="gt",
+                   help="gt: exact world state written by built-in predictors; neural: SAM 2.1 masks, CoTracker3 "
+                        "tracks, Video Depth Anything disparity (for any model's videos; weights: rigidbench weights)")
     p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)
     p.set_defaults(func=cmd_evaluate)
+    p = sub.add_parser("report", help="tables, figures and report.html from evaluation runs")
+    p.add_argument("runs", nargs="+", type=Path, help="run directories (runs/*)")
+    p.add_argument("--out", type=Path, default=Path("report"), help="output directory (default report/)")
+    p.add_argument("--baseline", help="model for paired changes (default: first run not named 'reference')")
+    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples (default 20000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_lazy("rigidbench.report:cmd_report"))
+    p = sub.add_parser("validate-metrics", help="controlled metric perturbations and one failure-mode response "
+                       "curve per metric (figure + table)")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered reference bundles")
+    p.add_argument("--out", type=Path, default=Path("validation"), help="output directory (default validation/)")
+    p.add_argument("--examples", type=int, default=10, help="reference examples to perturb (default 10)")
+    p.add_argument("--severities", type=int, default=6, help="levels per sweep, >= 2")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--with-rendered", action="store_true",
+                   help="also use the failure modes that re-render with Blender (depth-offset, identity-swap; slow)")
+    p.set_defaults(func=_lazy("rigidbench.validation:cmd_validate_metrics"))
     p = sub.add_parser("demo", help="the whole loop on this machine: render, predict, evaluate (CPU, minutes)")
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output directory (default demo_out)")
-    p.add_argument("--quality", choices=("preview", "test"), default="preview")
+    p.add_argument("--quality", choices=("preview", "test"), default="preview",
+                   help="render preset for the reference clips (default preview: 320x176, 49 frames)")
+    p.add_argument("--severity", type=float, default=0.5, help="severity of every failure mode, in [0, 1]")
+    p.add_argument("--perception", choices=("gt", "neural"), default="gt",
+                   help="gt: exact world state (no networks); neural: SAM 2.1, CoTracker3, Video Depth Anything")
+    p.add_argument("--modes", nargs="+", metavar="NAME", help="built-in predictors to run (default: a set of "
+                   "image-space failure modes plus gravity)")
+    p.add_argument("--no-report", action="store_true", help="skip the report (tables, figures, report.html)")
     p.set_defaults(func=cmd_demo)
     return parser
 

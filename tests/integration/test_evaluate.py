@@ -84,3 +84,17 @@ def test_failure_modes_move_metrics_in_the_expected_direction(data_dir, tmp_path
     assert wobble["bgdrift"]["mean"] > 3 * max(shake["bgdrift"]["mean"], 1e-4)
     gamma = _run(data_dir, tmp_path, "gamma").results["overall"]
     assert gamma["ssim"]["mean"] < 0.99 and gamma["ate3d"]["mean"] == pytest.approx(0.0, abs=5e-3)
+
+
+def test_predict_resumes_and_rewrites_when_the_severity_changes(data_dir, tmp_path):
+    preds = tmp_path / "predictions" / "slow"
+    predict("slow", data_dir, preds, 0.5, progress=False)
+    stamps = {p.name: p.stat().st_mtime_ns for p in preds.glob("*.mp4")}
+    (preds / "00020.mp4").unlink()  # as if interrupted before the second video was moved into place
+    written, failed = predict("slow", data_dir, preds, 0.5, progress=False)
+    assert written == ["00015", "00020"] and not failed
+    assert (preds / "00015.mp4").stat().st_mtime_ns == stamps["00015.mp4"]  # kept, not redone
+    assert not list(preds.glob(".*partial*"))
+    predict("slow", data_dir, preds, 1.0, progress=False)
+    assert (preds / "00015.mp4").stat().st_mtime_ns != stamps["00015.mp4"]  # new severity: written again
+    assert json.loads((preds / "predictor.json").read_text()) == {"predictor": "slow", "severity": 1.0}

@@ -393,11 +393,12 @@ def _check_poses(objects: Sequence[Any], positions_m: np.ndarray, frame: int, sa
 
 def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, frames_dir: Path, pass_dir: Path,
                    device: str = "auto", threads: int | None = None,
-                   on_frame: Callable[[int, int], None] | None = None) -> ExampleRender:
+                   on_frame: Callable[[int, int], None] | None = None, overrides: Any = None) -> ExampleRender:
     """Camera search, simulation and render of one example in this process's Blender.
 
     RGB frames go to ``frames_dir/00000.png ...`` and pass EXRs to ``pass_dir``; ``on_frame(done,
-    total)`` reports progress over the 2T renders (T data passes, then T RGB frames)."""
+    total)`` reports progress over the 2T renders (T data passes, then T RGB frames). ``overrides``
+    (``overrides.RenderOverrides``) swaps actor materials or offsets rendered actor poses."""
     import bpy
 
     from . import physics
@@ -417,6 +418,9 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
     scene = bpy.context.scene
     objects = {o.name: o for o in scene.objects}
     dressing = dress_scene(scene, spec, registry, objects)
+    if overrides is not None:
+        overrides.check(tuple(b.name for b in spec.bodies), T, spec.sample_id)
+        overrides.apply_dressing(dressing, registry)
     add_camera(scene, spec.camera)
     chosen = select_device(device)
     configure_cycles(scene, preset, spec.seed, chosen, threads)
@@ -433,6 +437,8 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
     for f in range(T):
         scene.frame_set(f + 1)
         _check_poses(actors, sim.trajectory.positions_m, f, spec.sample_id)
+        if overrides is not None:
+            overrides.pose(objects, dressing, f)
         bpy.ops.render.render(write_still=False)
         index[f], depth[f] = read_passes(pass_file(pass_dir, f + 1))
         if on_frame:
@@ -443,6 +449,8 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
     beauty_mode(scene, preset, chosen)
     for f in range(T):
         scene.frame_set(f + 1)
+        if overrides is not None:
+            overrides.pose(objects, dressing, f)
         scene.render.filepath = str(Path(frames_dir) / f"{f:05d}.png")
         bpy.ops.render.render(write_still=True)
         if on_frame:

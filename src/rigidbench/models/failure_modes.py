@@ -1,4 +1,4 @@
-"""Image-space failure modes: predictions made by changing one known thing about the reference.
+"""The failure-mode suite: predictions made by changing one known thing about the reference.
 
 Each predictor maps a reference ``Sample`` and a severity in [0, 1] (0 = the reference itself)
 to a ``Prediction``: the frames, their timestamps and the exact ``WorldState`` they depict, so
@@ -11,6 +11,16 @@ to a ``Prediction``: the frames, their timestamps and the exact ``WorldState`` t
 - background: ``background-wobble``, a smooth non-rigid displacement of the background only;
 - appearance: ``gamma`` (gamma 1 + 1.5 s, as in the paper's IdDrift check);
 - ``reference``: the reference, losslessly re-encoded.
+
+Re-simulated and re-rendered with Blender (bpy needed; one render per example at the reference's
+own preset), each with its severity scale documented in its module:
+
+- ``identity-swap`` (``identity_swap``): actors dressed in another object's materials, blended into
+  the actor pixels with weight s from frame 1 on;
+- ``gravity``, ``restitution``, ``friction``, ``mass`` (``counterfactuals``): one physical quantity
+  changed, the example simulated again;
+- ``depth-offset`` (``counterfactuals``): actors rendered up to 0.5 m nearer the camera along their
+  viewing rays.
 """
 
 from __future__ import annotations
@@ -22,6 +32,7 @@ from typing import Callable
 import numpy as np
 
 from ..perception.gt import WorldState, static_background
+from . import counterfactuals, identity_swap
 
 MAX_DELAY_S = 0.5
 SHAKE_AMPLITUDE = 0.03  # fraction of image height at severity 1
@@ -50,16 +61,19 @@ def _times(sample) -> np.ndarray:
 
 
 def time_remap(sample, shown_s: np.ndarray) -> Prediction:
-    """A video whose frame k shows the reference at time shown_s[k] (clamped to the clip)."""
-    from ..video import interpolate_linear, interpolate_nearest
+    """A video whose frame k shows the reference frame nearest to time shown_s[k] (clamped to the clip).
+
+    Frames are repeated or dropped, never blended, so every pixel and every state array (masks,
+    depth, tracks, visibility) depicts the same rendered instant exactly."""
+    from ..video import interpolate_nearest
 
     frames, masks, depth, tracks, vis = _reference(sample)
     src = _times(sample)
     shown = np.clip(np.asarray(shown_s, np.float64), 0.0, src[-1])
-    rgb = np.clip(np.rint(interpolate_linear(frames, src, shown)), 0, 255).astype(np.uint8)
+    rgb = interpolate_nearest(frames, src, shown)
     out_masks = interpolate_nearest(masks, src, shown)
     out_depth = interpolate_nearest(depth, src, shown).astype(np.float32)
-    out_tracks = np.moveaxis(interpolate_linear(np.moveaxis(tracks, 1, 0), src, shown), 0, 1).astype(np.float32)
+    out_tracks = np.moveaxis(interpolate_nearest(np.moveaxis(tracks, 1, 0), src, shown), 0, 1).astype(np.float32)
     out_vis = np.moveaxis(interpolate_nearest(np.moveaxis(vis, 1, 0), src, shown), 0, 1)
     times = _times(sample)[: len(shown)]
     affine, flow = static_background(len(shown))
@@ -184,11 +198,15 @@ def sample_seed(sample) -> int:
 FAILURE_MODES: dict[str, Callable] = {
     "reference": reference, "static": static, "slow": slow, "fast": fast, "delayed": delayed, "gamma": gamma,
     "camera-shake": camera_shake, "camera-drift": camera_drift, "background-wobble": background_wobble,
+    "identity-swap": identity_swap.identity_swap, "gravity": counterfactuals.gravity,
+    "restitution": counterfactuals.restitution, "friction": counterfactuals.friction, "mass": counterfactuals.mass,
+    "depth-offset": counterfactuals.depth_offset,
 }
 
 
 def write_prediction(pred: Prediction, out_dir, sample_id: str, fps: float) -> None:
-    """Write ``<id>.mp4`` (lossless H.264 RGB) and ``<id>.state.npz`` beside it."""
+    """Write ``<id>.state.npz`` then ``<id>.mp4`` (lossless H.264 RGB), each via a temporary file, so an
+    existing video always has its complete state beside it."""
     from pathlib import Path
 
     from ..perception.gt import state_path
@@ -197,5 +215,7 @@ def write_prediction(pred: Prediction, out_dir, sample_id: str, fps: float) -> N
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     video = out_dir / f"{sample_id}.mp4"
-    pred.state.save(state_path(video))
-    write_video(video, pred.frames, fps=fps, lossless=True)
+    pred.state.save(state_path(video))  # atomic
+    tmp_video = out_dir / f".{sample_id}.partial.mp4"  # hidden: validate and evaluate ignore it
+    write_video(tmp_video, pred.frames, fps=fps, lossless=True)
+    tmp_video.replace(video)

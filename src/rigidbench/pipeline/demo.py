@@ -1,49 +1,101 @@
-"""The demo behind `make demo`: render one evaluation example per task, run the reference and a
-set of failure modes, score them with exact (gt) perception and print the model x metric table."""
+"""The demo behind `make demo`: render one evaluation example per task, run the reference and a set of
+failure modes, score them, write the report and print the model x metric table.
+
+Everything runs on this machine's CPU with no network: the reference clips are rendered at the
+`preview` preset, the failure modes make their predictions from them (image-space ones in
+milliseconds, physics counterfactuals by re-simulating and re-rendering), and `gt` perception
+scores them exactly. Measurements whose networks are not available locally are skipped and the
+reason is printed.
+"""
 
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
+from typing import Sequence
 
-DEMO_MODES = ("reference", "static", "slow", "delayed", "gamma", "camera-shake", "background-wobble")
+# Image-space modes cost milliseconds; `gravity` re-renders every example once more.
+DEMO_MODES = ("reference", "static", "slow", "delayed", "gamma", "camera-shake", "background-wobble", "gravity")
 DISPLAY = ("IoU", "L2", "Cham.", "ATE", "ATE-3D", "SI-MSE", "SSIM", "LPIPS", "IdDrift", "BGDrift")
 
 
 def first_of_each_task(rows):
+    """The first manifest row of every task, in task order."""
     chosen = {}
     for row in rows:
         chosen.setdefault(row.task, row)
     return [chosen[t] for t in sorted(chosen)]
 
 
-def run_demo(out_dir: Path, quality: str = "preview", severity: float = 0.5) -> int:
+def format_table(table: dict[str, list[float | None]]) -> str:
+    """Model x metric means as fixed-width text; missing or non-finite values print as n/a."""
+    lines = [f"{'model':18s}" + "".join(f"{d:>9s}" for d in DISPLAY)]
+    for mode, values in table.items():
+        cells = ("n/a" if v is None or not math.isfinite(v) else f"{v:.4f}" for v in values)
+        lines.append(f"{mode:18s}" + "".join(f"{c:>9s}" for c in cells))
+    return "\n".join(lines)
+
+
+def _stage(number: int, total: int, text: str, started: float) -> None:
+    print(f"[{number}/{total}] {text}  ({time.time() - started:.0f} s elapsed)", flush=True)
+
+
+def run_demo(out_dir: Path, quality: str = "preview", severity: float = 0.5, perception: str = "gt",
+             modes: Sequence[str] = DEMO_MODES, report: bool = True, resamples: int = 20000) -> int:
+    """Render, predict, evaluate and report; returns the process exit status."""
     from ..config import registry
     from ..evaluate import METRICS, evaluate, load_feature_nets
     from ..manifest import eval_rows
+    from ..models.failure_modes import FAILURE_MODES
     from .predict import predict
     from .render import render_rows
 
+    unknown = [m for m in modes if m not in FAILURE_MODES]
+    if unknown:
+        raise KeyError(f"unknown demo mode(s) {', '.join(unknown)}; built-in predictors: {', '.join(FAILURE_MODES)}")
+    started = time.time()
+    out_dir = Path(out_dir)
     reg = registry()
     rows = first_of_each_task(eval_rows(reg))
     data = out_dir / "data"
-    print(f"[1/3] rendering {len(rows)} evaluation examples (one per task) at the '{quality}' preset")
-    render_rows(rows, reg, data, quality=quality)
+    stages = 4 if report else 3
+    _stage(1, stages, f"rendering {len(rows)} evaluation examples (one per task) at the '{quality}' preset "
+                      f"into {data}", started)
+    _, render_failures = render_rows(rows, reg, data, quality=quality)
+    for failure in render_failures:
+        print(f"  render FAILED {failure.sample_id}: {failure.reason}", flush=True)
+    if len(render_failures) == len(rows):
+        print("every example failed to render; nothing to evaluate", flush=True)
+        return 1
     split_dir = data / "eval"
     nets = load_feature_nets()
-    table = {}
-    print(f"[2/3] predicting and evaluating {len(DEMO_MODES)} built-in predictors (severity {severity})")
-    for mode in DEMO_MODES:
+    table, run_dirs, problems = {}, [], {}
+    _stage(2, stages, f"predicting and evaluating {len(modes)} built-in predictors (severity {severity}, "
+                      f"{perception} perception)", started)
+    for mode in modes:
         preds = out_dir / "predictions" / mode
-        predict(mode, split_dir, preds, 0.0 if mode == "reference" else severity)
-        summary = evaluate(preds, split_dir, out_dir / "runs" / mode, nets=nets, model=mode)
+        _, failed = predict(mode, split_dir, preds, 0.0 if mode == "reference" else severity)
+        summary = evaluate(preds, split_dir, out_dir / "runs" / mode, nets=nets, model=mode, perception=perception)
+        problems.update({f"{mode}/{k}": v for k, v in {**failed, **summary.failed}.items()})
         table[mode] = [summary.results["overall"][m]["mean"] for m in METRICS]
-    print("[3/3] results (means over the examples; gt perception)\n")
-    print(f"{'model':18s}" + "".join(f"{d:>9s}" for d in DISPLAY))
-    for mode, values in table.items():
-        print(f"{mode:18s}" + "".join(f"{'n/a' if v is None or not math.isfinite(v) else f'{v:.4f}':>9s}"
-                                      for v in values))
-    for metric, reason in nets.skipped.items():
-        print(f"\nskipped {metric}: {reason}")
+        run_dirs.append(summary.out_dir)
+    report_html = None
+    if report:
+        from ..report import build_report
+
+        _stage(3, stages, f"writing the report ({resamples} bootstrap resamples)", started)
+        report_html = build_report(run_dirs, out_dir / "report", resamples=resamples, seed=0)
+    _stage(stages, stages, f"results: means over {len(rows)} examples, {perception} perception", started)
+    print("\n" + format_table(table))
+    if nets.skipped:
+        print("\nskipped measurements:")
+        for metric, reason in nets.skipped.items():
+            print(f"  {metric}: {reason}")
+    for key, reason in problems.items():
+        print(f"  FAILED {key}: {reason}")
     print(f"\nper-example results: {out_dir / 'runs'}")
-    return 0
+    if report_html is not None:
+        print(f"report: {Path(report_html).resolve()}")
+    print(f"total time: {time.time() - started:.0f} s")
+    return 1 if problems else 0

@@ -109,16 +109,19 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
 
 
 def render_spec(spec: Any, registry: Registry, preset: RenderPreset, final_dir: Path, device: str = "auto",
-                threads: int | None = None, on_frame: Callable[[int, int], None] | None = None) -> Path:
+                threads: int | None = None, on_frame: Callable[[int, int], None] | None = None,
+                overrides: Any = None) -> Path:
     """Render a SceneSpec into the bundle directory ``final_dir`` in this process (bpy must be
-    importable); the camera search runs unless ``spec.camera`` is set. Returns ``final_dir``."""
+    importable); the camera search runs unless ``spec.camera`` is set. ``overrides`` (a
+    ``blender.overrides.RenderOverrides``) changes actor materials or rendered poses, not the
+    simulation. Returns ``final_dir``."""
     from ..blender.render import render_example
 
     t0 = time.perf_counter()
     tmp = B.prepare_tmp(final_dir)
     passes = tmp / ".passes"
     result = render_example(spec, registry, preset, tmp / B.FRAMES_DIR, passes, device=device, threads=threads,
-                            on_frame=on_frame)
+                            on_frame=on_frame, overrides=overrides)
     shutil.rmtree(passes)
     write_bundle(tmp, result, preset, time.perf_counter() - t0)
     problems = B.check_bundle(tmp)

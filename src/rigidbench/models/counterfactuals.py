@@ -1,0 +1,276 @@
+"""Physics counterfactuals: the reference example re-simulated and re-rendered with one thing changed.
+
+Each predictor rebuilds the reference's resolved ``SceneSpec`` (``scene_spec.json``: same scene,
+camera, task rotation and seed), changes one physical quantity by severity s in [0, 1], simulates
+it again in Bullet and renders it with Cycles at the reference's own render preset (recorded in its
+``metadata.json``; a ``test`` bundle re-renders at ``test``) on the same kind of device (CPU when the
+reference was rendered on the CPU). At s = 0 nothing changes and the re-render reproduces the
+reference: the simulation and Cycles (fixed seed) are deterministic.
+
+Severities (s = 0 is the reference in every mode):
+
+- ``gravity``: g -> g (1 + s), up to twice Earth gravity at s = 1;
+- ``restitution``: every surface in the scene (actors, ramps, support and floor) gets
+  e -> e + s (1 - e); Bullet multiplies the two restitutions of a contact, so at s = 1 every
+  collision is elastic;
+- ``friction``: every surface gets mu -> mu (1 - s); frictionless at s = 1;
+- ``mass``: active actors in spec order alternately get m (1 + 4 s) and m / (1 + 4 s), so the mass
+  ratio of neighbouring actors changes by up to 25x. Mass matters only where actors collide with
+  each other; a single free actor moves exactly as in the reference;
+- ``depth-offset``: every active actor is rendered displaced by 0.5 s metres along its viewing ray
+  (the line from the camera centre through its origin) at every frame, frame 0 included; the
+  simulation is the reference's. Its image position is unchanged (it looks nearer and larger)
+  while its depth drops by about the offset. The offset is *toward* the camera: a move away would
+  push resting actors into the support below them (the camera looks down by 10 degrees), which
+  would then hide them.
+
+The world state of a counterfactual comes from its own render: masks and depth from its passes,
+and the reference's ground-truth tracks re-derived for it, i.e. the same body-frame points (the
+reference's query points on its frame-0 mask, ``tracks.npz`` ``points_body_m``) carried by the
+counterfactual pose, projected with the same camera, visible by the same rule against the new masks
+and depth (``groundtruth.tracks``).
+
+The counterfactual bundle is rendered into a temporary directory that is removed afterwards, or
+into ``bundle_dir`` when one is given (kept there, e.g. for ``rigidbench show``; for
+``depth-offset`` its trajectories and tracks are the undisplaced simulation's).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from ..perception.gt import WorldState, static_background
+
+log = logging.getLogger(__name__)
+
+MAX_GRAVITY_FACTOR = 2.0  # g (1 + s): twice Earth gravity at s = 1
+MAX_MASS_FACTOR = 5.0  # alternate actors x (1 + 4 s) and / (1 + 4 s)
+MAX_DEPTH_OFFSET_M = 0.5  # along the viewing ray, toward the camera, at s = 1
+
+
+class CounterfactualError(ValueError):
+    """A counterfactual could not be simulated or rendered; the message names the example and why."""
+
+
+# -- what changes (pure: SceneSpec and Registry in, SceneSpec and Registry out) ---------------------
+
+
+def _with_body_physics(spec, registry, change: Callable) -> tuple:
+    """Apply ``change(BodyPhysics) -> BodyPhysics`` to every body, the support and the floor (whose
+    physics the simulator takes from ``registry.sim``)."""
+    from ..spec.types import BodyPhysics
+
+    bodies = tuple(dataclasses.replace(b, physics=change(b.physics)) for b in spec.bodies)
+    support = dataclasses.replace(spec.support, physics=change(spec.support.physics))
+    floor = change(BodyPhysics(0.0, registry.sim.passive_friction, registry.sim.passive_restitution))
+    sim = dataclasses.replace(registry.sim, passive_friction=floor.friction, passive_restitution=floor.restitution)
+    return (dataclasses.replace(spec, bodies=bodies, support=support), dataclasses.replace(registry, sim=sim))
+
+
+def gravity_change(spec, registry, severity: float) -> tuple:
+    """(spec, registry) with gravity g (1 + s)."""
+    g = spec.sim.gravity_m_s2 * (1.0 + (MAX_GRAVITY_FACTOR - 1.0) * severity)
+    return dataclasses.replace(spec, sim=dataclasses.replace(spec.sim, gravity_m_s2=g)), registry
+
+
+def restitution_change(spec, registry, severity: float) -> tuple:
+    """(spec, registry) with every surface's restitution e + s (1 - e)."""
+    return _with_body_physics(spec, registry, lambda p: dataclasses.replace(
+        p, restitution=p.restitution + severity * (1.0 - p.restitution)))
+
+
+def friction_change(spec, registry, severity: float) -> tuple:
+    """(spec, registry) with every surface's friction mu (1 - s)."""
+    return _with_body_physics(spec, registry, lambda p: dataclasses.replace(p, friction=p.friction * (1.0 - severity)))
+
+
+def mass_change(spec, registry, severity: float) -> tuple:
+    """(spec, registry) with active actors alternately (1 + 4 s) times heavier and lighter, in spec order."""
+    factor = 1.0 + (MAX_MASS_FACTOR - 1.0) * severity
+    bodies, k = [], 0
+    for b in spec.bodies:
+        if b.role == "active":
+            scale = factor if k % 2 == 0 else 1.0 / factor
+            b = dataclasses.replace(b, physics=dataclasses.replace(b.physics, mass_kg=b.physics.mass_kg * scale))
+            k += 1
+        bodies.append(b)
+    return dataclasses.replace(spec, bodies=tuple(bodies)), registry
+
+
+PHYSICS_CHANGES: dict[str, Callable] = {"gravity": gravity_change, "restitution": restitution_change,
+                                        "friction": friction_change, "mass": mass_change}
+
+
+def depth_offsets(positions_m: np.ndarray, camera_m: np.ndarray, offset_m: float) -> np.ndarray:
+    """positions_m (A,T,3) actor origins; camera_m (3,) camera centre. Returns (A,T,3) translations
+    of length ``offset_m`` along each origin's viewing ray, toward the camera."""
+    towards = np.asarray(camera_m, np.float64) - np.asarray(positions_m, np.float64)
+    return offset_m * towards / np.linalg.norm(towards, axis=-1, keepdims=True)
+
+
+# -- render -----------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _blender_output_silenced() -> Iterator[None]:
+    """Send file descriptor 1 (where Blender prints every render step) to /dev/null for the block."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def render_counterfactual(sample, spec, registry, out_dir: str | Path, overrides=None) -> Path:
+    """Simulate and render ``spec`` like the reference ``sample`` (its preset, device kind and camera)
+    into the new bundle directory ``out_dir``; returns it. Raises CounterfactualError naming the example."""
+    from ..groundtruth.bundle import BundleError, Sample
+    from ..pipeline.render import render_spec
+
+    ref_id = sample.sample_id
+    preset_name = sample.metadata.get("preset")
+    try:
+        preset = registry.preset(preset_name)
+    except KeyError:
+        raise CounterfactualError(f"example {ref_id}: its render preset '{preset_name}' is not configured here; "
+                                  "re-render the reference with `rigidbench render`") from None
+    if tuple(preset.resolution) != sample.resolution:
+        raise CounterfactualError(f"example {ref_id}: rendered at {sample.resolution} but preset '{preset_name}' is "
+                                  f"{tuple(preset.resolution)} here; re-render the reference with this configuration")
+    if spec.camera is None:
+        raise CounterfactualError(f"example {ref_id}: {sample.path / 'scene_spec.json'} has no camera; re-render "
+                                  "the reference with `rigidbench render`")
+    device = "cpu" if sample.metadata.get("render", {}).get("device_kind", "CPU") == "CPU" else "auto"
+    try:
+        with _blender_output_silenced():
+            path = render_spec(spec, registry, preset, Path(out_dir), device=device, overrides=overrides)
+    except (RuntimeError, BundleError) as exc:
+        raise CounterfactualError(f"example {ref_id}: the counterfactual render failed: {exc}") from exc
+    except ImportError as exc:  # no bpy: this predictor cannot run here; say so per example
+        raise CounterfactualError(f"example {ref_id}: {exc}") from exc
+    cf = Sample(path)
+    if cf.actor_names != sample.actor_names or cf.n_frames != sample.n_frames or cf.resolution != sample.resolution:
+        raise CounterfactualError(f"example {ref_id}: the counterfactual has actors {cf.actor_names}, "
+                                  f"{cf.n_frames} frames at {cf.resolution}; the reference {sample.actor_names}, "
+                                  f"{sample.n_frames} frames at {sample.resolution}")
+    return path
+
+
+# -- world state ------------------------------------------------------------------------------------
+
+
+def carried_tracks(sample, rotations: np.ndarray, positions_m: np.ndarray, masks: np.ndarray,
+                   depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's GT query points (body frame) carried by other poses: rotations (N,T,3,3),
+    positions_m (N,T,3) of all N actors; masks (T,N,H,W) bool and depth_m (T,H,W) of the clip that
+    shows them. Returns tracks (P,T,2) float32 px and visibility (P,T) bool, in reference order."""
+    from ..groundtruth.camera_model import project
+    from ..groundtruth.tracks import carry, visibility
+
+    tr = sample.tracks
+    R_c, t_c = sample.camera_pose
+    K = sample.K
+    P, T = tr["tracks"].shape[0], masks.shape[0]
+    uv_all = np.zeros((P, T, 2), np.float32)
+    vis_all = np.zeros((P, T), bool)
+    for a in np.unique(tr["actor_index"]):
+        mine = np.flatnonzero(tr["actor_index"] == a)
+        world = carry(tr["points_body_m"][mine], rotations[a, :T], positions_m[a, :T])
+        uv, z = project(world, K, R_c, t_c)
+        uv_all[mine] = uv
+        vis_all[mine] = visibility(uv, z, masks[:, a], depth_m)
+    return uv_all, vis_all
+
+
+def prediction_from_bundle(sample, cf, offsets_m: dict[str, np.ndarray] | None = None):
+    """A ``Prediction`` showing counterfactual bundle ``cf`` of reference ``sample``; ``offsets_m``
+    (actor name -> (T,3) m) are the render-time displacements ``cf`` was rendered with."""
+    from ..groundtruth.contacts import quat_to_matrix
+    from .failure_modes import Prediction
+
+    T = cf.n_frames
+    traj = cf.trajectory
+    positions = traj.positions_m[:, :T].copy()
+    for name, off in (offsets_m or {}).items():
+        positions[cf.actor_names.index(name)] += np.asarray(off, np.float64)[:T]
+    masks = cf.masks
+    tracks, vis = carried_tracks(sample, quat_to_matrix(traj.quat_wxyz[:, :T]), positions, masks, cf.depth)
+    times = np.arange(T) / float(cf.fps)
+    affine, flow = static_background(T)
+    state = WorldState(times, masks[:, sample.active_indices], cf.depth.astype(np.float32), tracks, vis, affine, flow)
+    return Prediction(cf.frames, times, state)
+
+
+# -- predictors -------------------------------------------------------------------------------------
+
+
+def _rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, offsets_m=None):
+    from ..blender.overrides import RenderOverrides
+    from ..groundtruth.bundle import Sample
+
+    overrides = RenderOverrides(offsets_m=offsets_m) if offsets_m else None
+    if bundle_dir is not None:
+        path = render_counterfactual(sample, spec, registry, bundle_dir, overrides)
+        return prediction_from_bundle(sample, Sample(path), offsets_m)
+    with tempfile.TemporaryDirectory(prefix=f"rigidbench-{sample.sample_id}-") as tmp:
+        path = render_counterfactual(sample, spec, registry, Path(tmp) / sample.sample_id, overrides)
+        return prediction_from_bundle(sample, Sample(path), offsets_m)
+
+
+def physics_counterfactual(sample, change: str, severity: float, bundle_dir: str | Path | None = None):
+    """Re-simulate and re-render ``sample`` with PHYSICS_CHANGES[change] at ``severity``; returns a Prediction."""
+    from ..config import registry as load_registry
+
+    spec, reg = PHYSICS_CHANGES[change](sample.spec, load_registry(), float(severity))
+    log.info("example %s: rendering the %s counterfactual at severity %.3g", sample.sample_id, change, severity)
+    return _rendered_prediction(sample, spec, reg, bundle_dir)
+
+
+def gravity(sample, severity: float, bundle_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "gravity", severity, bundle_dir)
+
+
+def restitution(sample, severity: float, bundle_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "restitution", severity, bundle_dir)
+
+
+def friction(sample, severity: float, bundle_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "friction", severity, bundle_dir)
+
+
+def mass(sample, severity: float, bundle_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "mass", severity, bundle_dir)
+
+
+def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None):
+    """Every active actor rendered 0.5 s m nearer the camera along its viewing ray, at every frame."""
+    from ..config import registry as load_registry
+
+    traj = sample.trajectory
+    _, camera_m = sample.camera_pose
+    active = sample.active_indices
+    shift = depth_offsets(traj.positions_m[active, :sample.n_frames], camera_m, MAX_DEPTH_OFFSET_M * float(severity))
+    offsets = {sample.actor_names[a]: shift[i] for i, a in enumerate(active)}
+    log.info("example %s: rendering actors %.3g m nearer the camera", sample.sample_id,
+             MAX_DEPTH_OFFSET_M * severity)
+    return _rendered_prediction(sample, sample.spec, load_registry(), bundle_dir, offsets)
+
+
+__all__ = ["CounterfactualError", "PHYSICS_CHANGES", "gravity_change", "restitution_change", "friction_change",
+           "mass_change", "depth_offsets", "render_counterfactual", "carried_tracks", "prediction_from_bundle",
+           "physics_counterfactual", "gravity", "restitution", "friction", "mass", "depth_offset",
+           "MAX_GRAVITY_FACTOR", "MAX_MASS_FACTOR", "MAX_DEPTH_OFFSET_M"]

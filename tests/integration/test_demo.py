@@ -1,0 +1,47 @@
+"""A reduced `rigidbench demo`: the `test` preset and three predictors, end to end through the report."""
+
+import json
+import re
+
+import pytest
+from conftest import requires_bpy
+
+from rigidbench.cli import main
+
+pytestmark = [pytest.mark.integration, requires_bpy]
+
+TASKS = ("ball_chain", "bounce", "drop_into_cluster", "free_fall", "ramp_collision")
+
+
+def _row(text: str, model: str) -> list[str]:
+    line = next(line for line in text.splitlines() if line.startswith(model + " "))
+    return line.split()[1:]
+
+
+def test_reduced_demo_renders_scores_and_reports(tmp_path, capsys):
+    out = tmp_path / "demo"
+    status = main(["demo", "--out", str(out), "--quality", "test", "--modes", "reference", "static", "gamma"])
+    text = capsys.readouterr().out
+    assert status == 0, text
+    # One rendered example per task.
+    metas = [json.loads(p.read_text()) for p in sorted((out / "data" / "eval").glob("*/metadata.json"))]
+    assert sorted(m["task"] for m in metas) == list(TASKS)
+    # The printed table: the reference scores perfectly; the frozen clip loses IoU, gamma loses SSIM only.
+    ref, static, gamma = (_row(text, m) for m in ("reference", "static", "gamma"))
+    assert float(ref[0]) == 1.0 and float(ref[6]) == 1.0  # IoU, SSIM
+    assert float(static[0]) < 0.9
+    assert float(gamma[0]) == 1.0 and float(gamma[6]) < 1.0
+    for mode in ("reference", "static", "gamma"):
+        results = json.loads((out / "runs" / mode / "results.json").read_text())
+        assert results["n_examples"] == 5 and not results["failed"]
+    # Skipped measurements are explained, and the report's path is printed and exists.
+    for metric in json.loads((out / "runs" / "reference" / "results.json").read_text())["skipped_metrics"]:
+        assert re.search(rf"^\s+{metric}: \S", text, re.M), f"no reason printed for skipped {metric}"
+    report = re.search(r"^report: (.+)$", text, re.M)
+    assert report and (out / "report" / "report.html").samefile(report.group(1))
+
+
+def test_demo_rejects_an_unknown_mode(tmp_path, capsys):
+    status = main(["demo", "--out", str(tmp_path), "--quality", "test", "--modes", "gravitee"])
+    err = capsys.readouterr().err
+    assert status == 2 and "gravitee" in err
