@@ -81,8 +81,10 @@ def cmd_evaluate(args) -> int:
     ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
     out = args.out or Path("runs") / args.predictions.name
     try:
+        options = ({"depth_model": args.depth_model, "device": args.device}
+                   if args.perception == "neural" else None)
         summary = evaluate(args.predictions, args.data, out, perception=args.perception, ids=ids or None,
-                           limit=args.limit, model=args.model)
+                           limit=args.limit, model=args.model, perception_options=options)
     except EvaluationError as exc:
         raise UserError(str(exc)) from None
     overall = summary.results["overall"]
@@ -126,6 +128,12 @@ def cmd_demo(args) -> int:
                         report=not args.no_report, **kwargs)
     except KeyError as exc:
         raise UserError(exc.args[0]) from None
+
+
+def _add_weights_arguments(parser) -> None:
+    from .perception.weights import add_arguments  # light: no torch or transformers at import
+
+    add_arguments(parser)
 
 
 def _lazy(target: str):
@@ -222,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--perception", choices=("gt", "neural"), default="gt",
                    help="gt: exact world state written by built-in predictors; neural: SAM 2.1 masks, CoTracker3 "
                         "tracks, Video Depth Anything disparity (for any model's videos; weights: rigidbench weights)")
+    p.add_argument("--depth-model", choices=("vda", "dav2"), default="vda",
+                   help="neural disparity: Video Depth Anything Large (the paper's) or Depth Anything V2 per frame")
+    p.add_argument("--device", help="neural perception device, e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
     p.add_argument("--ids", nargs="+", metavar="ID")
@@ -244,6 +255,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--with-rendered", action="store_true",
                    help="also use the failure modes that re-render with Blender (depth-offset, identity-swap; slow)")
     p.set_defaults(func=_lazy("rigidbench.validation:cmd_validate_metrics"))
+    p = sub.add_parser("weights", help="list the perception/feature network weights, or download them for "
+                       "offline use")
+    _add_weights_arguments(p)
+    p.set_defaults(func=_lazy("rigidbench.perception.weights:cmd_weights"))
     p = sub.add_parser("demo", help="the whole loop on this machine: render, predict, evaluate (CPU, minutes)")
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output directory (default demo_out)")
     p.add_argument("--quality", choices=("preview", "test"), default="preview",

@@ -56,27 +56,43 @@ class FeatureNets:
         return ",".join(f"{m}={'yes' if getattr(self, n) else 'no'}" for m, n in (("lpips", "lpips"), ("iddrift", "identity")))
 
 
-def load_feature_nets(device: str | None = None) -> FeatureNets:
-    """LPIPS-AlexNet and DINOv2-L identity features from local weights; skipped with a reason if absent."""
-    from .metrics import lpips_net
+def load_feature_nets(device: str | None = None, allow_download: bool = False) -> FeatureNets:
+    """LPIPS-AlexNet and DINOv2-L identity features from local weights (see ``perception.weights``) on
+    ``device`` (None: CUDA when available); a network whose weights are absent is skipped with the reason."""
+    from .perception import weights
+    from .perception.device import resolve_device
     from .perception.features import WeightsUnavailable, load_identity_features
 
-    nets = FeatureNets(device=device or _best_device())
+    nets = FeatureNets(device=resolve_device(device))
     try:
-        nets.lpips = lpips_net.build_lpips_alex(allow_download=False).to(nets.device)
-    except (OSError, KeyError) as exc:
+        nets.lpips = _load_lpips(allow_download).to(nets.device)
+    except WeightsUnavailable as exc:
         nets.skipped["lpips"] = str(exc)
     try:
-        nets.identity = load_identity_features(device=nets.device)
+        nets.identity = load_identity_features(device=nets.device, path=weights.locate("dinov2"),
+                                               allow_download=allow_download)
     except WeightsUnavailable as exc:
         nets.skipped["iddrift"] = str(exc)
     return nets
 
 
-def _best_device() -> str:
-    import torch
+def _load_lpips(allow_download: bool):
+    """LPIPS-AlexNet with the lpips package's linear layers and the AlexNet backbone from $RIGIDBENCH_ALEXNET
+    or the torch hub cache; raises WeightsUnavailable naming what is missing."""
+    from .metrics import lpips_net
+    from .perception import weights
+    from .perception.features import WeightsUnavailable
 
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    lin = weights.locate("lpips-lin")
+    if lin is None:
+        raise WeightsUnavailable(weights.missing_message("lpips-lin"))
+    backbone = weights.locate("alexnet")
+    if backbone is None and not allow_download:
+        raise WeightsUnavailable(weights.missing_message("alexnet"))
+    try:
+        return lpips_net.build_lpips_alex(backbone_weights=backbone, lin_weights=lin, allow_download=allow_download)
+    except (OSError, KeyError, ValueError) as exc:
+        raise WeightsUnavailable(f"{weights.missing_message('alexnet')} (loading failed: {exc})") from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -229,8 +245,13 @@ class EvaluationSummary:
 
 def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
              ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
-             model: str | None = None, progress: bool = True) -> EvaluationSummary:
-    """Score every selected example; see the module docstring for the files written."""
+             model: str | None = None, progress: bool = True,
+             perception_options: dict | None = None) -> EvaluationSummary:
+    """Score every selected example; see the module docstring for the files written.
+
+    ``perception_options`` go to the backend's constructor (neural: depth_model, device, weights,
+    allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
+    ``out/cache/<backend>/``."""
     from .groundtruth.bundle import Sample
     from .perception.base import Perception, PerceptionError, get_backend
     from .perception.gt import state_path
@@ -248,7 +269,13 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             raise EvaluationError(f"unknown example id(s) {', '.join(unknown)} in {data_dir}")
         refs = [p for p in refs if p.name in set(ids)]
     refs = refs[:limit] if limit is not None else refs
-    backend = get_backend(perception)
+    backend = get_backend(perception, **(perception_options or {}))
+    if hasattr(backend, "use_cache_dir"):
+        backend.use_cache_dir(out_dir / "cache" / backend.name)
+    missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
+    if missing:
+        raise EvaluationError(f"{backend.name} perception cannot run: " + "\n  ".join(missing)
+                              + "\n  (`rigidbench weights --list` shows every weight and where it is looked for)")
     nets = nets if nets is not None else load_feature_nets()
     (out_dir / "examples").mkdir(parents=True, exist_ok=True)
     (out_dir / "cache").mkdir(exist_ok=True)
@@ -367,7 +394,8 @@ def _run_info(model, pred_dir, data_dir, backend, nets, pred_hashes, ref_hashes,
               evaluated, reused, failed) -> dict:
     return {"model": model, "predictions": str(pred_dir), "data": str(data_dir),
             "predictions_hash": _digest(pred_hashes), "data_hash": _digest(ref_hashes),
-            "perception": {"backend": backend.name, "version": backend.version},
+            "perception": {"backend": backend.name, "version": backend.version,
+                           "settings": getattr(backend, "settings", {})},
             "feature_nets": {"lpips": nets.lpips is not None, "iddrift": nets.identity is not None,
                              "device": nets.device, "skipped": nets.skipped},
             "settings": {"reference_fps": 24, "score_version": SCORE_VERSION},

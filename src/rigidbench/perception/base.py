@@ -6,7 +6,7 @@ frame times) into a ``Perception``; the evaluator then aligns it to the referenc
 passes the arrays to the metric functions. Backends:
 
 - ``gt``: exact, from the world state a built-in predictor wrote beside its video;
-- ``neural`` (SAM 2.1, CoTracker3, Video Depth Anything) plugs in the same way.
+- ``neural``: SAM 2.1, CoTracker3 and Video Depth Anything on the generated clip (``neural``).
 
 Adding a backend is one module exposing a class with ``name``, ``version`` and ``perceive``,
 registered in ``BACKENDS``.
@@ -99,6 +99,7 @@ class Backend(Protocol):
 
 BACKENDS = {
     "gt": "rigidbench.perception.gt:GroundTruthBackend",
+    "neural": "rigidbench.perception.neural:NeuralBackend",
 }
 
 

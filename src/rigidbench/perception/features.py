@@ -1,13 +1,14 @@
 """DINOv2 ViT-L/14 identity features for IdDrift (paper, appendix B.2).
 
-Weights load with ``transformers`` from a local directory (``RIGIDBENCH_DINOV2`` or the
-``path`` argument) or the Hugging Face cache (``facebook/dinov2-large``); by default no download
-is attempted, so an offline machine gets a clear message instead of a network error.
+Weights load with ``transformers`` from the ``path`` argument, the directory in
+``RIGIDBENCH_DINOV2``, or the Hugging Face cache (``facebook/dinov2-large``), in that order (see
+``perception.weights``); by default no download is attempted, so an offline machine gets a clear
+message instead of a network error. Inference is bfloat16 on CUDA and float32 on the CPU; IdDrift
+feeds the network batches of 256 patches.
 """
 
 from __future__ import annotations
 
-import os
 from typing import Callable
 
 DINOV2_MODEL = "facebook/dinov2-large"
@@ -18,29 +19,41 @@ class WeightsUnavailable(OSError):
     """Model weights are not available locally; the message says where we looked and how to fetch them."""
 
 
-def load_identity_features(device: str = "cpu", path: str | None = None, allow_download: bool = False,
-                           model=None) -> Callable:
-    """Return f: (B,3,224,224) ImageNet-normalised float -> (B,D) DINOv2 CLS features.
+def load_dinov2(path: str | None = None, allow_download: bool = False):
+    """Returns the pretrained ``Dinov2Model`` (float32, CPU) from ``path``, $RIGIDBENCH_DINOV2 or the cache."""
+    from . import weights
 
-    bf16 on CUDA, float32 on CPU. ``model`` may be a ready ``Dinov2Model`` (tests pass a tiny one).
+    try:
+        from transformers import Dinov2Model
+    except ModuleNotFoundError:
+        raise WeightsUnavailable("DINOv2 identity features need the 'transformers' package: "
+                                 "pip install -e '.[neural]'") from None
+    found = weights.locate("dinov2", path)
+    if found is None and not allow_download:
+        raise WeightsUnavailable(weights.missing_message("dinov2", path))
+    source = str(found) if found is not None else DINOV2_MODEL
+    try:
+        return Dinov2Model.from_pretrained(source, local_files_only=found is not None)
+    except OSError as exc:
+        raise WeightsUnavailable(f"{weights.missing_message('dinov2', path)} "
+                                 f"(loading {source} failed: {exc})") from None
+
+
+def load_identity_features(device: str | None = None, path: str | None = None, allow_download: bool = False,
+                           model=None) -> Callable:
+    """Return f: (B,3,224,224) ImageNet-normalised float -> (B,D) float32 DINOv2 CLS features.
+
+    ``device`` None picks CUDA when available; bf16 on CUDA, float32 on CPU. ``model`` may be a
+    ready ``Dinov2Model`` (tests pass a tiny one).
     """
     import torch
 
+    from .device import inference_dtype, resolve_device
+
+    device = resolve_device(device)
     if model is None:
-        try:
-            from transformers import Dinov2Model
-        except ModuleNotFoundError:
-            raise WeightsUnavailable("DINOv2 identity features need the 'transformers' package: "
-                                     "pip install -e '.[neural]'") from None
-        source = path or os.environ.get(DINOV2_ENV) or DINOV2_MODEL
-        try:
-            model = Dinov2Model.from_pretrained(source, local_files_only=not allow_download)
-        except OSError:
-            raise WeightsUnavailable(
-                f"DINOv2 weights '{source}' are not available locally (looked in ${DINOV2_ENV} and the Hugging Face "
-                f"cache); fetch them once with `rigidbench weights --download` on a machine with network access, "
-                f"or set {DINOV2_ENV} to a local copy of {DINOV2_MODEL}") from None
-    dtype = torch.bfloat16 if device.startswith("cuda") else torch.float32
+        model = load_dinov2(path, allow_download)
+    dtype = inference_dtype("dinov2", device)
     model = model.to(device=device, dtype=dtype).eval()
 
     @torch.no_grad()
@@ -48,4 +61,5 @@ def load_identity_features(device: str = "cpu", path: str | None = None, allow_d
         out = model(pixel_values=x.to(device=device, dtype=dtype))
         return out.pooler_output.float()
 
+    features.parameters = model.parameters  # lets IdDrift prepare patches on the model's device
     return features
