@@ -236,3 +236,73 @@ def test_user_scene_mesh_becomes_occluders(empty_scene, tmp_path):
     names = [ob.name for ob in env.occluders]
     assert any(n.startswith("room") for n in names), names
     assert env.supports["counter"].matrix_world.translation.z == pytest.approx(0.92 - 0.02, abs=1e-6)
+
+
+@pytest.mark.parametrize("scene_id", sorted(REG.scenes))
+def test_space_above_every_support_is_clear(empty_scene, scene_id):
+    # Upward rays from just above each top face (inset by the rule's margin) on a 4 cm grid must not hit
+    # any scene geometry within CLEAR_ABOVE_M: nothing hangs over a drop zone (the japandi pendant once did).
+    from mathutils import Vector
+
+    from rigidbench.assets.scenes import CLEAR_ABOVE_M, CLEAR_INSET_M
+
+    scene = REG.scene(scene_id)
+    build_environment(scene)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    for s in scene.supports:
+        yaw = math.radians(s.long_axis_deg)
+        axis_long, axis_short = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        half = np.asarray(s.size_m) / 2 - CLEAR_INSET_M - 1e-3
+        hits = []
+        for u in np.linspace(-half[0], half[0], max(2, int(2 * half[0] / 0.04) + 1)):
+            for w in np.linspace(-half[1], half[1], max(2, int(2 * half[1] / 0.04) + 1)):
+                x, y = np.asarray(s.centre_m[:2]) + u * axis_long + w * axis_short
+                start = Vector((x, y, s.centre_m[2] + 0.002))
+                hit, loc, _, _, ob, _ = empty_scene.ray_cast(depsgraph, start, Vector((0.0, 0.0, 1.0)),
+                                                             distance=CLEAR_ABOVE_M - 0.002)
+                if hit:
+                    hits.append((ob.name, round(loc.z - s.centre_m[2], 3)))
+        assert not hits, f"{scene_id}/{s.name}: geometry above the support: {sorted(set(hits))[:5]}"
+
+
+def test_japandi_pendant_hangs_above_the_clear_column(empty_scene):
+    from rigidbench.assets.scenes import CLEAR_ABOVE_M
+
+    scene = REG.scene("modern_japandi_dining")
+    env = build_environment(scene)
+    table = scene.support("table")
+    pendants = [ob for ob in env.occluders if "pendant" in ob.name]
+    assert pendants, "the dining table keeps its pendant lamp"
+    lowest = min(world_vertices(ob)[:, 2].min() for ob in pendants)
+    assert lowest >= table.centre_m[2] + CLEAR_ABOVE_M - 1e-6
+    bulbs = [ob for ob in env.lights if "bulb" in ob.name]
+    assert bulbs and all(ob.location.z > table.centre_m[2] + CLEAR_ABOVE_M - 0.1 for ob in bulbs)
+
+
+@pytest.mark.parametrize("object_id", sorted(REG.objects))
+def test_collision_hull_is_the_decimated_hull_of_the_rendered_mesh(empty_scene, object_id):
+    from scipy.spatial import ConvexHull
+
+    from rigidbench.assets.collision import MAX_HULL_VERTICES, hull_mesh
+    from rigidbench.assets.objects import object_vertices
+
+    cfg = REG.object(object_id)
+    rendered = local_vertices(build_object(cfg, f"{object_id}_0"))
+    np.testing.assert_allclose(object_vertices(cfg), rendered, atol=1e-6)  # same geometry, no Blender needed
+    hull = hull_mesh(rendered)
+    assert len(hull.vertices) <= MAX_HULL_VERTICES
+    # every kept vertex is a rendered vertex, and the hull's box is the configured box exactly
+    d = np.linalg.norm(hull.vertices[:, None, :] - rendered[None, :, :], axis=2).min(1)
+    assert d.max() < 1e-9
+    np.testing.assert_allclose(hull.vertices.max(0) - hull.vertices.min(0), cfg.size_m, atol=1e-9)
+    # closed and outward: each edge is shared by two faces, and the signed volume is the hull's volume
+    edges = np.sort(np.concatenate([hull.faces[:, [0, 1]], hull.faces[:, [1, 2]], hull.faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)
+    a, b, c = (hull.vertices[hull.faces[:, k]] for k in range(3))
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6
+    assert volume == pytest.approx(ConvexHull(hull.vertices).volume, rel=1e-9)
+    # decimation loses little: the full hull's vertices lie at most 2.5% of the longest side outside it
+    full = rendered[ConvexHull(rendered).vertices]
+    eq = ConvexHull(hull.vertices).equations
+    assert (full @ eq[:, :3].T + eq[:, 3]).max() <= 0.025 * max(cfg.size_m)

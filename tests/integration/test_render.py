@@ -379,3 +379,33 @@ def test_failing_example_is_reported_and_the_others_continue(reg, task_rows, tmp
     assert failures[0].reason.startswith("SpecError") and bad.sample_id in failures[0].reason
     assert not (data / bad.split / bad.sample_id).exists()
     assert B.check_bundle(data / good.split / good.sample_id) == []
+
+
+def test_fast_presets_approximate_light_transport_and_drop_bump_paper_keeps_both():
+    # `preview` and `test` trade light transport and sub-pixel relief for speed; `paper` renders in full.
+    import bpy
+
+    from rigidbench.assets import materials as M
+    from rigidbench.blender import render as R
+    from rigidbench.blender.session import reset_scene
+
+    reg = load_registry()
+    scene = reset_scene()
+    for name, fast in (("paper", False), ("preview", True), ("test", True)):
+        R.light_transport(scene, reg.preset(name))
+        assert scene.cycles.use_fast_gi is fast and scene.cycles.use_light_tree is (not fast), name
+    mats = [M.painted("rb_t_painted", (0.5, 0.5, 0.5)), M.wood("rb_t_wood", (0.6, 0.4, 0.2), 0.5)]
+
+    def bump_links(mat):
+        return [lk for lk in mat.node_tree.links if lk.from_node.bl_idname == "ShaderNodeBump"]
+
+    assert all(len(bump_links(m)) == 1 for m in mats)
+    device = R.RenderDevice("CPU", ("cpu",))
+    R.beauty_mode(scene, reg.preset("paper"), device)
+    assert all(len(bump_links(m)) == 1 for m in mats)  # paper keeps its bump mapping
+    assert R.drop_bump_mapping() == 2
+    assert not any(bump_links(m) for m in mats)
+    bsdf = next(n for n in mats[0].node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    assert not bsdf.inputs["Normal"].is_linked and bsdf.outputs["BSDF"].is_linked
+    assert R.drop_bump_mapping() == 0
+    del bpy

@@ -39,7 +39,7 @@ def _damped_apex_m(v0: float, g: float, k: float) -> float:
 
 
 def _lowest_point_m(reg, spec, traj, name: str, frame: int) -> float:
-    """World z of the lowest vertex of the stand-in mesh of ``name`` at ``frame``."""
+    """World z of the lowest vertex of the collision hull of ``name`` at ``frame``."""
     from rigidbench.blender.physics import body_mesh
 
     i = traj.index(name)
@@ -180,7 +180,17 @@ def test_ball_chain_striker_sets_first_row_object_moving(reg):
     assert first_hit, "the striker never touched the first row object"
     hit = min(first_hit)
     row = traj.positions_m[traj.index("apple_1")]
-    assert np.linalg.norm(row[:hit] - row[0], axis=1).max() < 0.001  # at rest before the impact
+    striker = traj.positions_m[traj.index("baseball_0")]
+    # At rest (beyond settling onto the support from its 1 mm placement clearance) until the striker reaches
+    # it: when it first moves, the two centres are no farther apart than the sum of their half sizes plus
+    # a few millimetres (margins, hull facets and the striker's rebound within one frame).
+    moved = int(np.nonzero(np.linalg.norm(row - row[0], axis=1) > 0.002)[0][0])
+    reach = (reg.object("baseball").size_m[0] + reg.object("apple").size_m[0]) / 2
+    assert np.linalg.norm(striker[moved] - row[moved]) <= reach + 0.005
+    assert np.linalg.norm(striker[moved - 1] - row[moved - 1]) > reach
+    # The contact is reported with the impact; frames sample it at 24 fps, so the impact itself may
+    # fall between two frames and the bodies be a few millimetres apart again at the next ones.
+    assert moved - 1 <= hit <= moved + 3
     assert row[-1, 0] - row[0, 0] > 0.02  # pushed along +x after it
 
 

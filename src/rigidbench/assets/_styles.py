@@ -67,16 +67,26 @@ def _rug(kit, name: str, size, xy, role: str = "rug_deco", rot: float = 0.0):
                     kit.scene.floor_z_m, rot, check=False)
 
 
+def _hang(kit, name: str, make, xy, top: float, drop: float, min_drop: float = 0.1) -> float:
+    """Hang ``make(drop)`` (pieces below a ceiling point) at ``xy`` from height ``top``, shortening the drop
+    in 5 cm steps until it clears every support's column (scenes.CLEAR_ABOVE_M); returns the drop used."""
+    while drop > min_drop and not kit.fits(make(drop), xy, top):
+        drop = round(drop - 0.05, 4)
+    kit.item(name, make(drop), xy, top, check=False)
+    return drop
+
+
 def _pendants(kit, support: str, shape: str, n: int, drop: float, radius: float = 0.18, light_w: float = 25.0):
-    """``n`` pendants along a support's long axis, hanging from the wall-top height."""
+    """``n`` pendants along a support's long axis, hanging from the wall-top height (as low as ``drop``
+    while the space above the supports stays clear)."""
     s = kit.scene.support(support)
     top = kit.scene.floor_z_m + kit.style.wall_height_m
     yaw = np.radians(s.long_axis_deg)
     for k in range(n):
         d = (k - (n - 1) / 2) * s.size_m[0] / n
         x, y = s.centre_m[0] + np.cos(yaw) * d, s.centre_m[1] + np.sin(yaw) * d
-        kit.item("pendant", F.pendant(drop, shape, radius), (x, y), top, check=False)
-        kit.light("POINT", (x, y, top - drop - 0.02), light_w, kit.style.lamp_colour, size_m=0.05, name="bulb")
+        used = _hang(kit, "pendant", lambda h: F.pendant(h, shape, radius), (x, y), top, drop)
+        kit.light("POINT", (x, y, top - used - 0.02), light_w, kit.style.lamp_colour, size_m=0.05, name="bulb")
 
 
 def _plant(kit, side: str, t: float, kind: str = "bush", height: float = 1.2, pot_r: float = 0.17,
@@ -251,8 +261,9 @@ def _dining_set(kit) -> None:
         kit.on_wall(side, 0.5, "wainscot", F.wainscot(kit.walls[kit.sides[side]].length_m, 1.0), check=False)
     _rug(kit, "rug", (3.2, 2.2), (0.0, 0.0), "rug_deco", rot=90.0)
     top = kit.scene.floor_z_m + kit.style.wall_height_m
-    kit.item("chandelier", F.chandelier(1.0, 6, 0.45), (0.0, 0.0), top, check=False)
-    kit.light("POINT", (0.0, 0.0, top - 0.95), 60.0, kit.style.lamp_colour, size_m=0.3, name="chandelier_light")
+    used = _hang(kit, "chandelier", lambda h: F.chandelier(h, 6, 0.45), (0.0, 0.0), top, 1.0)
+    kit.light("POINT", (0.0, 0.0, top - used + 0.05), 60.0, kit.style.lamp_colour, size_m=0.3,
+              name="chandelier_light")
     t = _t_of(kit, "back", 0.0)
     _art(kit, "back", t, 1.75, 1.3, 0.9, "art0")
     kit.on_wall("right", 0.5, "cabinet", F.bookcase(rng, 1.4, 0.42, 2.0, 4), offset_m=0.22)
@@ -373,8 +384,8 @@ def _mural(kit) -> None:
                              ("front", 0.7, "tall", 1.5), ("right", 0.3, "bush", 0.9), ("left", 0.1, "palm", 1.4)):
         _plant(kit, side, t, kind, h, 0.2)
     top = kit.scene.floor_z_m + kit.style.wall_height_m
-    kit.item("pendant", F.pendant(1.1, "cone", 0.25), (0.0, 0.0), top, check=False)
-    kit.light("POINT", (0.0, 0.0, top - 1.12), 40.0, kit.style.lamp_colour, size_m=0.1, name="bulb")
+    used = _hang(kit, "pendant", lambda h: F.pendant(h, "cone", 0.25), (0.0, 0.0), top, 1.1)
+    kit.light("POINT", (0.0, 0.0, top - used - 0.02), 40.0, kit.style.lamp_colour, size_m=0.1, name="bulb")
     _lamp(kit, "front", 0.55, 0.35, 35.0)
 
 

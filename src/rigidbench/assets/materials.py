@@ -75,11 +75,15 @@ def wood(name: str, colour, roughness: float, planks: bool = False, plank_m: tup
 
 
 def marble(name: str, colour, roughness: float, vein=(0.35, 0.35, 0.38), vein_scale: float = 2.0):
-    """Polished stone with thin dark veins (two noise layers) and a glossy coat."""
+    """Polished stone with thin dark veins (two noise layers) and a glossy coat. The two layers are 3D noise
+    at different offsets (off the lattice plane z = 0 of the flat UVs): half the cost of 4D noise, which
+    made marble the most expensive surface in the kitchens."""
     def build(g: Graph) -> None:
         uv = g.coords("UV")
-        n1 = g.noise(uv, scale=vein_scale, detail=8.0, roughness=0.6, distortion=1.2, dims="4D", w=1.3)
-        n2 = g.noise(uv, scale=vein_scale * 2.6, detail=6.0, roughness=0.55, distortion=0.8, dims="4D", w=7.1)
+        n1 = g.noise(g.mapping(uv, location=(13.7, 5.1, 0.37)), scale=vein_scale, detail=8.0, roughness=0.6,
+                     distortion=1.2)
+        n2 = g.noise(g.mapping(uv, location=(3.3, 9.9, 0.71)), scale=vein_scale * 2.6, detail=6.0, roughness=0.55,
+                     distortion=0.8)
         v1 = g.math("ABSOLUTE", g.math("SUBTRACT", n1.outputs["Fac"], 0.5))
         v2 = g.math("ABSOLUTE", g.math("SUBTRACT", n2.outputs["Fac"], 0.5))
         veins = g.ramp(v1, [(0.0, (0.0,) * 3), (0.012, (0.55,) * 3), (0.05, (1.0,) * 3)]).outputs["Color"]

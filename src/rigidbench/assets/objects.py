@@ -5,7 +5,9 @@ bounding box, +z up, +x along the long axis, scaled so the bounding box equals
 ``ObjectConfig.size_m``. Each model is a few closed shells (body plus stem, crown, beak...)
 of at most ~2.5k vertices, with Cycles materials whose surface detail (painted pattern,
 speckles, bump) moves with the object so its points can be tracked. ``build_ramp`` makes the
-exact five-face wedge the physics uses (``standin.ramp_mesh``).
+exact five-face wedge the physics uses (``standin.ramp_mesh``). Each builder returns its geometry
+and a function that makes its materials, so ``object_vertices`` gives the physics the exact
+rendered geometry (for its collision hull) without touching Blender.
 """
 
 from __future__ import annotations
@@ -22,6 +24,10 @@ from rigidbench.config import MaterialConfig, ObjectConfig
 from rigidbench.spec.types import RampShape
 
 log = logging.getLogger(__name__)
+
+# A builder returns its geometry (pure numpy) and a function that makes its bpy materials, so the
+# physics can take the collision hull from the same geometry without Blender data being created.
+Materials = Callable[[], list]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -72,35 +78,37 @@ def _stem(base, tip, r0: float, r1: float, segments: int = 8) -> Part:
 # Fruit and vegetables
 
 
-def apple() -> tuple[Part, list]:
+def apple() -> tuple[Part, Materials]:
     r, z, v = _polar_profile(24, lambda t: 0.5 * np.sin(t) * (1 - 0.07 * np.cos(t)),
                              lambda t: -0.5 * np.cos(t) - 0.14 * _bump_at(np.pi - t, 0.45) + 0.08 * _bump_at(t, 0.4))
     body = revolve(r, z, 40, radial=lambda vv, phi: 1 + 0.012 * np.cos(5 * phi) * np.sin(np.pi * vv), v_coords=v)
     stem = _stem((0, 0, 0.3), (0.05, 0.0, 0.62), 0.024, 0.017).with_material(1)
-    return join([body, stem]), [M.skin("rb_apple", _paint.apple, roughness=0.35, coat=0.3, bump_scale=400, bump=0.05),
-                                M.plain("rb_apple_stem", (0.32, 0.22, 0.1), roughness=0.8)]
+    return join([body, stem]), lambda: [
+        M.skin("rb_apple", _paint.apple, roughness=0.35, coat=0.3, bump_scale=400, bump=0.05),
+        M.plain("rb_apple_stem", (0.32, 0.22, 0.1), roughness=0.8)]
 
 
-def orange() -> tuple[Part, list]:
+def orange() -> tuple[Part, Materials]:
     body = sphere(48, 24, radial=lambda v, phi: 1 + 0.006 * np.cos(7 * phi) * np.sin(np.pi * v))
-    return body, [M.skin("rb_orange", _paint.orange, roughness=0.5, bump_scale=900, bump=0.3, pits=1.5)]
+    return body, lambda: [M.skin("rb_orange", _paint.orange, roughness=0.5, bump_scale=900, bump=0.3, pits=1.5)]
 
 
-def lemon() -> tuple[Part, list]:
+def lemon() -> tuple[Part, Materials]:
     r, z, v = _polar_profile(32, lambda t: 0.5 * np.sin(t) ** 1.15,
                              lambda t: -np.cos(t) * (0.5 + 0.16 * _bump_at(np.sin(t), 0.2)))
     body = revolve(r, z, 40, v_coords=v).transformed(Z_TO_X)
-    return body, [M.skin("rb_lemon", _paint.lemon, roughness=0.4, coat=0.1, bump_scale=900, bump=0.3, pits=1.5)]
+    return body, lambda: [M.skin("rb_lemon", _paint.lemon, roughness=0.4, coat=0.1, bump_scale=900, bump=0.3,
+                                 pits=1.5)]
 
 
-def kiwi() -> tuple[Part, list]:
+def kiwi() -> tuple[Part, Materials]:
     body = sphere(36, 18, radial=lambda v, phi: 1 + 0.02 * np.cos(2 * phi) * np.sin(np.pi * v)).transformed(Z_TO_X)
-    return body, [M.skin("rb_kiwi", _paint.kiwi, roughness=0.95, sheen=0.5, sheen_tint=(0.6, 0.5, 0.35),
-                         bump_scale=1800, bump=0.35,
-                         specular=0.2)]
+    return body, lambda: [M.skin("rb_kiwi", _paint.kiwi, roughness=0.95, sheen=0.5, sheen_tint=(0.6, 0.5, 0.35),
+                                 bump_scale=1800, bump=0.35,
+                                 specular=0.2)]
 
 
-def pomegranate() -> tuple[Part, list]:
+def pomegranate() -> tuple[Part, Materials]:
     body = sphere(48, 24, radial=lambda v, phi: 1 + 0.02 * np.cos(6 * phi) * np.sin(np.pi * v))
     r, z = smooth_profile([(0.0, 0.36), (0.1, 0.44), (0.13, 0.52), (0.17, 0.63), (0.11, 0.6), (0.06, 0.54),
                            (0.0, 0.53)], 14)
@@ -108,31 +116,31 @@ def pomegranate() -> tuple[Part, list]:
     def star(v, phi):
         return 1 + 0.45 * np.clip(np.cos(6 * phi), 0, None) ** 3 * np.clip((v - 0.4) / 0.4, 0, 1)
     crown = revolve(r, z, 48, radial=star).with_material(1)
-    return join([body, crown]), [
+    return join([body, crown]), lambda: [
         M.skin("rb_pomegranate", _paint.pomegranate, roughness=0.45, coat=0.2, bump_scale=300, bump=0.08),
         M.plain("rb_pomegranate_crown", (0.45, 0.12, 0.08), roughness=0.7)]
 
 
-def pear() -> tuple[Part, list]:
+def pear() -> tuple[Part, Materials]:
     r, z = smooth_profile([(0.0, -0.5), (0.3, -0.48), (0.47, -0.33), (0.5, -0.12), (0.43, 0.1), (0.3, 0.3),
                            (0.23, 0.48), (0.2, 0.6), (0.1, 0.66), (0.0, 0.65)], 28)
     body = revolve(r, z, 40, v_coords=np.linspace(0, 1, len(r)))
     stem = _stem((0, 0, 0.6), (0.06, 0.0, 0.84), 0.03, 0.022).with_material(1)
-    return join([body, stem]), [M.skin("rb_pear", _paint.pear, roughness=0.5, bump_scale=400, bump=0.1),
-                                M.plain("rb_pear_stem", (0.3, 0.2, 0.1), roughness=0.8)]
+    return join([body, stem]), lambda: [M.skin("rb_pear", _paint.pear, roughness=0.5, bump_scale=400, bump=0.1),
+                                        M.plain("rb_pear_stem", (0.3, 0.2, 0.1), roughness=0.8)]
 
 
-def mango() -> tuple[Part, list]:
+def mango() -> tuple[Part, Materials]:
     r, z, v = _polar_profile(28, lambda t: 0.5 * np.sin(t) * (1 - 0.12 * np.cos(t)), lambda t: -0.5 * np.cos(t))
     body = revolve(r, z, 40, v_coords=v)
     vert = body.vertices.copy()
     vert[:, 1] += 0.14 * (vert[:, 2] / 0.5) ** 2  # kidney bend (sideways once the axis is x)
     vert[:, 0] *= 0.85  # flatter top to bottom
     body = Part(vert, body.corners, body.sizes, body.uvs, body.materials).transformed(Z_TO_X)
-    return body, [M.skin("rb_mango", _paint.mango, roughness=0.4, coat=0.2, bump_scale=300, bump=0.05)]
+    return body, lambda: [M.skin("rb_mango", _paint.mango, roughness=0.4, coat=0.2, bump_scale=300, bump=0.05)]
 
 
-def banana() -> tuple[Part, list]:
+def banana() -> tuple[Part, Materials]:
     radius_m = 0.16
     ang = np.linspace(-0.62, 0.62, 28)
     arc = np.stack([radius_m * np.sin(ang), radius_m * (1 - np.cos(ang)), np.zeros_like(ang)], 1)
@@ -144,26 +152,27 @@ def banana() -> tuple[Part, list]:
     centres = np.vstack([arc, stalk])
     radii = np.r_[radii, np.full(4, 0.0055)]
     body = sweep(centres, radii, segments=15, cross=lambda a: 1 + 0.06 * np.cos(5 * a))
-    return body, [M.skin("rb_banana", _paint.banana, roughness=0.5, bump_scale=300, bump=0.05)]
+    return body, lambda: [M.skin("rb_banana", _paint.banana, roughness=0.5, bump_scale=300, bump=0.05)]
 
 
-def watermelon() -> tuple[Part, list]:
+def watermelon() -> tuple[Part, Materials]:
     body = sphere(48, 24, radial=lambda v, phi: 1 + 0.01 * np.cos(3 * phi) * np.sin(np.pi * v)).transformed(Z_TO_X)
-    return body, [M.skin("rb_watermelon", _paint.watermelon, roughness=0.35, coat=0.25, bump_scale=120, bump=0.05)]
+    return body, lambda: [M.skin("rb_watermelon", _paint.watermelon, roughness=0.35, coat=0.25, bump_scale=120,
+                                 bump=0.05)]
 
 
-def peach() -> tuple[Part, list]:
+def peach() -> tuple[Part, Materials]:
     r, z, v = _polar_profile(24, lambda t: 0.5 * np.sin(t),
                              lambda t: -0.5 * np.cos(t) - 0.07 * _bump_at(np.pi - t, 0.35) - 0.03 * _bump_at(t, 0.3))
 
     def crease(vv, phi):
         return 1 - 0.05 * np.exp(-(_wrap(phi) / 0.16) ** 2) * np.sin(np.pi * vv) ** 0.5
     body = revolve(r, z, 48, radial=crease, v_coords=v)
-    return body, [M.skin("rb_peach", _paint.peach, roughness=0.7, sheen=0.6, sheen_tint=(1.0, 0.8, 0.7),
-                         bump_scale=1500, bump=0.15)]
+    return body, lambda: [M.skin("rb_peach", _paint.peach, roughness=0.7, sheen=0.6, sheen_tint=(1.0, 0.8, 0.7),
+                                 bump_scale=1500, bump=0.15)]
 
 
-def tomato() -> tuple[Part, list]:
+def tomato() -> tuple[Part, Materials]:
     half_h = 0.42
 
     def fruit_z(t):
@@ -185,52 +194,52 @@ def tomato() -> tuple[Part, list]:
         return 0.18 + 0.82 * ((1 + np.cos(5 * phi)) / 2) ** 4
     calyx = revolve(prof_r, prof_z, 60, radial=star).with_material(1)
     stem = _stem((0, 0, surface[0] + 0.01), (0.02, 0.0, surface[0] + 0.1), 0.03, 0.025).with_material(1)
-    return join([body, calyx, stem]), [
+    return join([body, calyx, stem]), lambda: [
         M.skin("rb_tomato", _paint.tomato, roughness=0.15, coat=0.5, bump_scale=250, bump=0.03),
         M.plain("rb_tomato_calyx", (0.2, 0.42, 0.12), roughness=0.6)]
 
 
-def coconut() -> tuple[Part, list]:
+def coconut() -> tuple[Part, Materials]:
     body = sphere(40, 20, radial=lambda v, phi: (1 + 0.04 * np.clip(np.cos(3 * phi), 0, None) ** 4
                                                  * np.sin(np.pi * v)))
     vert = body.vertices.copy()
     vert[:, 2] *= 1.0 + 0.06 * vert[:, 2]  # slightly egg-shaped
     body = Part(vert, body.corners, body.sizes, body.uvs, body.materials)
-    return body, [M.skin("rb_coconut", _paint.coconut, roughness=0.9, sheen=0.5, sheen_tint=(0.8, 0.65, 0.5),
-                         bump_scale=900, bump=0.6,
-                         image_bump=0.4)]
+    return body, lambda: [M.skin("rb_coconut", _paint.coconut, roughness=0.9, sheen=0.5, sheen_tint=(0.8, 0.65, 0.5),
+                                 bump_scale=900, bump=0.6,
+                                 image_bump=0.4)]
 
 
 # ---------------------------------------------------------------------------------------------
 # Balls
 
 
-def baseball() -> tuple[Part, list]:
-    return sphere(48, 24), [M.skin("rb_baseball", _paint.baseball, roughness=0.6, bump_scale=600, bump=0.1,
-                                   image_bump=-0.4)]
+def baseball() -> tuple[Part, Materials]:
+    return sphere(48, 24), lambda: [M.skin("rb_baseball", _paint.baseball, roughness=0.6, bump_scale=600, bump=0.1,
+                                           image_bump=-0.4)]
 
 
-def tennis_ball() -> tuple[Part, list]:
-    return sphere(48, 24), [M.skin("rb_tennis_ball", _paint.tennis_ball, roughness=0.95, sheen=0.8,
-                                   sheen_tint=(0.9, 1.0, 0.6),
-                                   bump_scale=2500, bump=0.5, image_bump=-0.3)]
+def tennis_ball() -> tuple[Part, Materials]:
+    return sphere(48, 24), lambda: [M.skin("rb_tennis_ball", _paint.tennis_ball, roughness=0.95, sheen=0.8,
+                                           sheen_tint=(0.9, 1.0, 0.6),
+                                           bump_scale=2500, bump=0.5, image_bump=-0.3)]
 
 
-def cricket_ball() -> tuple[Part, list]:
-    return sphere(48, 24), [M.skin("rb_cricket_ball", _paint.cricket_ball, roughness=0.3, coat=0.5,
-                                   bump_scale=400, bump=0.05, image_bump=0.4)]
+def cricket_ball() -> tuple[Part, Materials]:
+    return sphere(48, 24), lambda: [M.skin("rb_cricket_ball", _paint.cricket_ball, roughness=0.3, coat=0.5,
+                                           bump_scale=400, bump=0.05, image_bump=0.4)]
 
 
-def bouncy_ball() -> tuple[Part, list]:
-    return sphere(32, 16), [M.skin("rb_bouncy_ball", _paint.bouncy_ball, roughness=0.15, coat=0.8, bump=0.02,
-                                   variation=0.05)]
+def bouncy_ball() -> tuple[Part, Materials]:
+    return sphere(32, 16), lambda: [M.skin("rb_bouncy_ball", _paint.bouncy_ball, roughness=0.15, coat=0.8,
+                                           bump=0.02, variation=0.05)]
 
 
-def rugby_ball() -> tuple[Part, list]:
+def rugby_ball() -> tuple[Part, Materials]:
     r, z, v = _polar_profile(32, lambda t: 0.5 * np.sin(t) * (0.72 + 0.28 * np.sin(t)), lambda t: -0.5 * np.cos(t))
     body = revolve(r, z, 48, v_coords=v).transformed(Z_TO_X)
-    return body, [M.skin("rb_rugby_ball", _paint.rugby_ball, roughness=0.55, bump_scale=1200, bump=0.3,
-                         image_bump=-0.2)]
+    return body, lambda: [M.skin("rb_rugby_ball", _paint.rugby_ball, roughness=0.55, bump_scale=1200, bump=0.3,
+                                 image_bump=-0.2)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,21 +274,21 @@ def _tab(h: float) -> Part:
     return join([plate, rivet]).with_material(1)
 
 
-def red_bull_can() -> tuple[Part, list]:
-    return _beverage_can(0.135 / 0.0265), [
+def red_bull_can() -> tuple[Part, Materials]:
+    return _beverage_can(0.135 / 0.0265), lambda: [
         M.skin("rb_energy_can", _paint.energy_can, roughness=0.25, metallic=0.6, bump_scale=300, bump=0.02,
                variation=0.04),
         M.plain("rb_can_metal", (0.85, 0.86, 0.88), roughness=0.22, metallic=1.0, variation=0.05)]
 
 
-def soda_can() -> tuple[Part, list]:
-    return _beverage_can(0.115 / 0.033), [
+def soda_can() -> tuple[Part, Materials]:
+    return _beverage_can(0.115 / 0.033), lambda: [
         M.skin("rb_soda_can", _paint.soda_can, roughness=0.22, metallic=0.55, bump_scale=300, bump=0.02,
                variation=0.04),
         M.plain("rb_can_metal", (0.85, 0.86, 0.88), roughness=0.22, metallic=1.0, variation=0.05)]
 
 
-def food_can() -> tuple[Part, list]:
+def food_can() -> tuple[Part, Materials]:
     h = 0.11 / 0.0375
     pts = [(0.0, 0.04), (0.85, 0.04), (0.92, 0.02), (0.97, 0.0), (1.03, 0.04), (1.03, 0.08), (1.0, 0.12),
            (1.0, h - 0.12), (1.03, h - 0.08), (1.03, h - 0.04), (0.97, h), (0.92, h - 0.02), (0.85, h - 0.04),
@@ -287,12 +296,12 @@ def food_can() -> tuple[Part, list]:
     r, z = np.array(pts).T
     can = revolve(r, z, 48, v_coords=z / h)
     can = _material_by_height(can, 0.1, h - 0.1, 0, 1)
-    return can, [M.skin("rb_food_can", _paint.food_can_label, roughness=0.65, bump_scale=300, bump=0.03,
-                        variation=0.06),
-                 M.plain("rb_tin_metal", (0.78, 0.78, 0.76), roughness=0.3, metallic=1.0, variation=0.05)]
+    return can, lambda: [M.skin("rb_food_can", _paint.food_can_label, roughness=0.65, bump_scale=300, bump=0.03,
+                                variation=0.06),
+                         M.plain("rb_tin_metal", (0.78, 0.78, 0.76), roughness=0.3, metallic=1.0, variation=0.05)]
 
 
-def plastic_bottle() -> tuple[Part, list]:
+def plastic_bottle() -> tuple[Part, Materials]:
     h = 0.21 / 0.0325
     body_pts = [(0.0, 0.1), (0.55, 0.02), (0.85, 0.0), (0.97, 0.1), (1.0, 0.3)]
     for k in range(4):  # grip ridges
@@ -306,26 +315,26 @@ def plastic_bottle() -> tuple[Part, list]:
     starts = np.r_[0, np.cumsum(bottle.sizes)[:-1]]
     zc = np.add.reduceat(bottle.vertices[bottle.corners, 2], starts) / bottle.sizes
     bottle.materials[zc > 5.7] = 2
-    return bottle, [M.plain("rb_clear_plastic", (0.92, 0.96, 1.0), roughness=0.04, transmission=1.0, bump=0.02,
-                            variation=0.0),
-                    M.skin("rb_bottle_label", _paint.bottle_label, roughness=0.35, bump_scale=300, bump=0.02,
-                           variation=0.04),
-                    M.plain("rb_bottle_cap", (0.1, 0.35, 0.85), roughness=0.35, bump=0.2, noise_scale=800)]
+    return bottle, lambda: [M.plain("rb_clear_plastic", (0.92, 0.96, 1.0), roughness=0.04, transmission=1.0,
+                                    bump=0.02, variation=0.0),
+                            M.skin("rb_bottle_label", _paint.bottle_label, roughness=0.35, bump_scale=300, bump=0.02,
+                                   variation=0.04),
+                            M.plain("rb_bottle_cap", (0.1, 0.35, 0.85), roughness=0.35, bump=0.2, noise_scale=800)]
 
 
-def large_dice() -> tuple[Part, list]:
+def large_dice() -> tuple[Part, Materials]:
     cube = rounded_box((1.0, 1.0, 1.0), 0.14, flat_steps=4, round_steps=3, atlas=True)
-    return cube, [M.skin("rb_die", _paint.die, roughness=0.25, coat=0.3, bump_scale=300, bump=0.6, image_bump=0.6,
-                         variation=0.03)]
+    return cube, lambda: [M.skin("rb_die", _paint.die, roughness=0.25, coat=0.3, bump_scale=300, bump=0.6,
+                                 image_bump=0.6, variation=0.03)]
 
 
-def rubiks_cube() -> tuple[Part, list]:
+def rubiks_cube() -> tuple[Part, Materials]:
     cube = rounded_box((1.0, 1.0, 1.0), 0.05, flat_steps=6, round_steps=2, atlas=True)
-    return cube, [M.skin("rb_puzzle_cube", _paint.puzzle_cube, roughness=0.45, coat=0.4, bump_scale=300, bump=0.6,
-                         image_bump=0.5, variation=0.03, roughness_from_image=-0.3)]
+    return cube, lambda: [M.skin("rb_puzzle_cube", _paint.puzzle_cube, roughness=0.45, coat=0.4, bump_scale=300,
+                                 bump=0.6, image_bump=0.5, variation=0.03, roughness_from_image=-0.3)]
 
 
-def toy_duck() -> tuple[Part, list]:
+def toy_duck() -> tuple[Part, Materials]:
     body = sphere(36, 18).scaled((1.0, 0.72, 0.58))
     v = body.vertices.copy()
     tail = np.clip(-v[:, 0] - 0.18, 0, None)
@@ -336,7 +345,7 @@ def toy_duck() -> tuple[Part, list]:
     beak = sphere(20, 10).scaled((0.24, 0.2, 0.09)).transformed(offset=(0.46, 0.0, 0.32)).with_material(1)
     eyes = [sphere(10, 6).scaled((0.07, 0.07, 0.07)).transformed(offset=(0.38, s * 0.12, 0.44)).with_material(2)
             for s in (-1, 1)]
-    return join([body, head, beak, *eyes]), [
+    return join([body, head, beak, *eyes]), lambda: [
         M.skin("rb_duck", _paint.duck, roughness=0.3, coat=0.2, bump_scale=300, bump=0.02, variation=0.05),
         M.plain("rb_duck_beak", (0.98, 0.42, 0.05), roughness=0.3),
         M.plain("rb_duck_eye", (0.02, 0.02, 0.02), roughness=0.08, coat=1.0, variation=0.0),
@@ -353,7 +362,7 @@ BUILDERS: dict[str, Callable[[], tuple[Part, list]]] = {
 }
 
 
-def _generic(obj: ObjectConfig) -> tuple[Part, list]:
+def _generic(obj: ObjectConfig) -> tuple[Part, Materials]:
     """Stand-in primitive with a speckled material for an object id without a dedicated builder."""
     mesh = object_mesh(obj.shape, (1.0, 1.0, 1.0))
     uvs = np.zeros((mesh.faces.size, 2))
@@ -361,7 +370,8 @@ def _generic(obj: ObjectConfig) -> tuple[Part, list]:
                 np.zeros(len(mesh.faces), np.int64), np.full(len(mesh.faces), obj.shape != "box"))
     hue = (sum(map(ord, obj.id)) % 360) / 360.0
     colour = tuple(0.55 + 0.35 * np.cos(2 * np.pi * (hue + k / 3)) for k in range(3))
-    return part, [M.plain(f"rb_generic_{obj.id}", colour, roughness=0.5, noise_scale=150, bump=0.1, variation=0.35)]
+    return part, lambda: [M.plain(f"rb_generic_{obj.id}", colour, roughness=0.5, noise_scale=150, bump=0.1,
+                                          variation=0.35)]
 
 
 def build_object(obj: ObjectConfig, name: str):
@@ -375,9 +385,21 @@ def build_object(obj: ObjectConfig, name: str):
         part, mats = _generic(obj)
     else:
         part, mats = builder()
-    ob = to_object(fit(part, obj.size_m), name, mats)
+    ob = to_object(fit(part, obj.size_m), name, mats())
     ob["rb_asset"] = obj.id
     return ob
+
+
+def object_vertices(obj: ObjectConfig) -> np.ndarray:
+    """Vertices (V,3) float64 m of the mesh ``build_object`` makes for ``obj`` (bbox centred, equal to
+    obj.size_m), without creating Blender data for procedural objects; a user mesh file is imported
+    (needs bpy)."""
+    if obj.mesh_path:
+        from rigidbench.assets.loader import load_mesh_vertices
+        return load_mesh_vertices(obj)
+    builder = BUILDERS.get(obj.id)
+    part = _generic(obj)[0] if builder is None else builder()[0]
+    return np.asarray(fit(part, obj.size_m).vertices, dtype=np.float64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -411,4 +433,4 @@ def build_ramp(shape: RampShape, material: MaterialConfig, name: str):
     return ob
 
 
-__all__ = ["build_object", "build_ramp", "BUILDERS", "smooth_profile", "ramp_uvs"]
+__all__ = ["build_object", "object_vertices", "build_ramp", "BUILDERS", "smooth_profile", "ramp_uvs"]

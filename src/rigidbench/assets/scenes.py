@@ -10,6 +10,12 @@
   supports); the remaining walls stand ``margin_m`` beyond the supports so a camera 1.4-3 m
   away fits inside the room, and the area within ~0.4 m of each support is kept clear of
   tall clutter;
+- the column above every support (its top face inset by ``CLEAR_INSET_M``, from the top up to
+  ``CLEAR_ABOVE_M`` above it) holds no scene geometry, so objects dropped, bounced or thrown
+  there are never hidden from above: pendants hang higher where they would enter it, chairs
+  are pulled out from under table edges, and any other item reaching into it (open shelves
+  over a counter, a range hood) is left out. Thin wall decor within the inset (backsplash,
+  pictures) stays;
 - floor-level supports (rugs, decks, floor patches) sit flush in a hole of the room floor,
   which is at ``floor_z_m`` everywhere;
 - the world is one of Blender's bundled CC0 studio-light HDRIs (``style.hdri`` in the YAML may
@@ -41,6 +47,9 @@ HDRIS = ("interior.exr", "studio.exr", "courtyard.exr", "forest.exr", "city.exr"
          "sunset.exr")
 WALL_T = 0.15  # wall thickness (m)
 KEEP_CLEAR_M = 0.4  # no tall clutter this close to a support's edge (chairs and stools excepted)
+CLEAR_ABOVE_M = 1.5  # no scene geometry in the column this high above a support's top face
+CLEAR_INSET_M = 0.05  # ... over the top face shrunk by this much on every side
+CLEAR_FLOOR_M = 0.001  # the column starts this far above the top face
 
 
 @dataclass
@@ -84,6 +93,37 @@ class SupportInfo:
     @property
     def yaw_deg(self) -> float:
         return self.cfg.long_axis_deg
+
+
+@dataclass(frozen=True)
+class ClearColumn:
+    """The space kept free above one support: an oriented box in the support's frame."""
+
+    support: str
+    centre_xy: np.ndarray  # (2,) m
+    yaw_deg: float
+    half_m: tuple[float, float]  # half long, half short extent (inset)
+    z_m: tuple[float, float]  # bottom, top
+
+    def polygons_inside(self, vertices: np.ndarray, corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+        """vertices (V,3) world m; corners (C,) and sizes (P,) int polygon loops. Returns (P,) bool: the
+        polygon's bounding box in the support frame overlaps the column."""
+        local = vertices.copy()
+        local[:, :2] = (vertices[:, :2] - self.centre_xy) @ rot_z(self.yaw_deg)[:2, :2]
+        starts = np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64)
+        pts = local[corners]
+        lo, hi = np.minimum.reduceat(pts, starts, axis=0), np.maximum.reduceat(pts, starts, axis=0)
+        return ((lo[:, 0] < self.half_m[0]) & (hi[:, 0] > -self.half_m[0]) & (lo[:, 1] < self.half_m[1])
+                & (hi[:, 1] > -self.half_m[1]) & (lo[:, 2] < self.z_m[1]) & (hi[:, 2] > self.z_m[0]))
+
+
+def clear_column(s: SupportConfig) -> ClearColumn:
+    """The column kept free of scene geometry above support ``s`` (see the module docstring)."""
+    L, W = s.size_m
+    top = s.centre_m[2]
+    return ClearColumn(s.name, np.asarray(s.centre_m[:2], float), s.long_axis_deg,
+                       (max(L / 2 - CLEAR_INSET_M, 0.0), max(W / 2 - CLEAR_INSET_M, 0.0)),
+                       (top + CLEAR_FLOOR_M, top + CLEAR_ABOVE_M))
 
 
 def support_corners(s: SupportConfig) -> np.ndarray:
@@ -149,6 +189,7 @@ class Kit:
         self.occluders: list[Any] = []
         self.lights: list[Any] = []
         self.keep_out: list[tuple[float, float, float, float]] = []
+        self.columns: list[ClearColumn] = [clear_column(s) for s in scene.supports]
         self.walls: dict[str, Wall] = {}
         self.sides: dict[str, str] = {}  # back/front/left/right -> north/south/east/west
         self.infos: list[SupportInfo] = []
@@ -196,10 +237,27 @@ class Kit:
         if check and self._blocked(merged, xy, z, rot_deg):
             log.debug("scene %s: skipped %s at %s (too close to a support)", self.scene.id, name, xy)
             return None
+        column = self.intruded_column(merged, xy, z, rot_deg)
+        if column is not None:
+            log.info("scene %s: left out %s at (%.2f, %.2f): it reaches into the clear space above support '%s'",
+                     self.scene.id, name, xy[0], xy[1], column)
+            return None
         ob = to_object(merged, self._name(name), [self.mat(r) for r in roles], self.collection,
                        location=(float(xy[0]), float(xy[1]), float(z)), rotation_z_deg=rot_deg)
         self.occluders.append(ob)
         return ob
+
+    def intruded_column(self, part: Part, xy, z: float, rot_deg: float) -> str | None:
+        """Name of a support whose clear column ``part`` placed at (x, y, z) with yaw ``rot_deg`` enters, or None."""
+        v = part.vertices @ rot_z(rot_deg).T + np.array([xy[0], xy[1], z])
+        for column in self.columns:
+            if column.polygons_inside(v, part.corners, part.sizes).any():
+                return column.support
+        return None
+
+    def fits(self, pieces: F.Pieces, xy, z: float = 0.0, rot_deg: float = 0.0) -> bool:
+        """Whether ``pieces``, placed at (x, y, z) with yaw ``rot_deg``, stay out of every support's clear column."""
+        return self.intruded_column(join([p for p, _ in pieces]), xy, z, rot_deg) is None
 
     def _blocked(self, part: Part, xy, z: float, rot_deg: float) -> bool:
         v = part.vertices @ rot_z(rot_deg).T + np.array([xy[0], xy[1], z])
@@ -478,7 +536,11 @@ def build_support(kit: Kit, info: SupportInfo) -> None:
         kit.item(f"{s.name}_body", body, (cx, cy), floor_z, yaw, check=False)
     m = rot_z(yaw)[:2, :2]
     for name, pieces, (lx, ly), rot in extra:
-        x, y = m @ np.array([lx, ly]) + np.array([cx, cy])
+        out = np.array([0.0, np.sign(ly)]) if abs(ly) > W / 2 else np.array([np.sign(lx), 0.0])  # away from the edge
+        for pull_m in np.arange(0.0, 0.61, 0.05):  # pull seats out until they clear every support's column
+            x, y = m @ (np.array([lx, ly]) + pull_m * out) + np.array([cx, cy])
+            if kit.fits(pieces, (x, y), floor_z, yaw + rot):
+                break
         kit.item(name, pieces, (x, y), floor_z, yaw + rot, check=False)
 
 

@@ -5,8 +5,9 @@ Scene (paper appendix A, table "Simulation and rendering configuration"):
   a rigid-body world with ``spec.sim`` substeps per frame, solver iterations and gravity
   (0, 0, -g), its point cache covering frames 1..frames;
 - every actor in spec order (world poses from ``spec.world_bodies()``): active objects as
-  convex-hull rigid bodies with their own mass, friction and restitution, linear and angular
-  damping and collision margin from ``spec.sim``, never deactivated; passive ramps as
+  convex-hull rigid bodies (the hull of the rendered procedural mesh, decimated to at most
+  ``MAX_HULL_VERTICES`` vertices, see ``body_mesh``) with their own mass, friction and
+  restitution, linear and angular damping and collision margin from ``spec.sim``, never deactivated; passive ramps as
   triangle-mesh colliders with the passive margin and the ramp body's friction and restitution;
 - then the support, a passive triangle-mesh box whose top face is at ``support.centre_m`` (size
   ``support.size_m`` along ``long_axis_deg``, ``SUPPORT_THICKNESS_M`` thick) with the support's
@@ -41,7 +42,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..assets.standin import Mesh, box, object_mesh, ramp_mesh
+from ..assets.collision import MAX_HULL_VERTICES, hull_mesh
+from ..assets.standin import Mesh, box, ramp_mesh
 from ..config import Registry
 from ..groundtruth.contacts import contact_pairs, convex_hull, detect_contacts
 from ..groundtruth.trajectory import Contact, Trajectory, save_contacts
@@ -93,11 +95,24 @@ class SimulationResult:
 # -- scene description (no bpy) ----------------------------------------------------------------
 
 
+_HULLS: dict[tuple, Mesh] = {}  # collision hulls by (asset id, mesh file, asset size, body size)
+
+
 def body_mesh(body: Body, registry: Registry) -> Mesh:
-    """Collision and render mesh of one actor in its model frame (the single mesh source)."""
+    """Collision mesh of one actor in its model frame (the single mesh source for Bullet and contacts):
+    the exact wedge for a ramp; for an object, the convex hull (at most MAX_HULL_VERTICES vertices) of
+    the mesh ``assets.objects.build_object`` renders, its bounding box centred on the origin and
+    equal to ``body.size_m``. Hulls are cached per process."""
     if body.ramp is not None:
         return ramp_mesh(body.ramp.length_m, body.ramp.height_m, body.ramp.width_m)
-    return object_mesh(registry.object(body.asset).shape, body.size_m)
+    obj = registry.object(body.asset)
+    key = (obj.id, str(obj.mesh_path or ""), tuple(obj.size_m), tuple(body.size_m))
+    if key not in _HULLS:
+        from ..assets.objects import object_vertices
+
+        scale = np.asarray(body.size_m, float) / np.asarray(obj.size_m, float)
+        _HULLS[key] = hull_mesh(object_vertices(obj) * scale, MAX_HULL_VERTICES)
+    return _HULLS[key]
 
 
 def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:

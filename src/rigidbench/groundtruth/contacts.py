@@ -5,8 +5,10 @@ poses and the same convex hulls that Bullet collides:
 
 1. Every body's collision mesh is reduced once to its convex hull in the model frame
    (``scipy.spatial.ConvexHull``): the hull vertices and the outward face planes ``n . x <= d``,
-   coplanar facets merged. Active bodies collide as convex hulls in Bullet; passive geometry
-   (support box, floor box, ramp wedge) is convex already, so the hull *is* its surface.
+   coplanar facets merged. Active bodies collide as convex hulls in Bullet (their collision mesh,
+   ``blender.physics.body_mesh``, is already the decimated hull of the rendered model, so this is
+   the very polytope Bullet uses); passive geometry (support box, floor box, ramp wedge) is convex
+   already, so the hull *is* its surface.
 2. Broad phase, per pair over all frames at once: a bounding-sphere test (spheres about the
    model origins enclosing the hulls, plus the tolerance) rejects distant frames.
 3. Candidates, in both directions: the hull vertices of body A are carried into B's model frame,
