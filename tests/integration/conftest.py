@@ -142,6 +142,18 @@ TASK_SPECS = {"free_fall": free_fall_spec, "bounce": bounce_spec, "ramp_collisio
               "ball_chain": ball_chain_spec, "drop_into_cluster": drop_into_cluster_spec}
 
 
+def render_eval_examples(root, ids: tuple[str, ...], preset: str = "test"):
+    """Render evaluation examples ``ids`` into ``root/eval`` at ``preset``; returns that directory."""
+    from rigidbench import manifest
+    from rigidbench.pipeline.render import render_to_bundle
+
+    reg = load_registry()
+    rows = {r.sample_id: r for r in manifest.eval_rows(reg)}
+    for sample_id in ids:
+        render_to_bundle(rows[sample_id], reg, reg.preset(preset), root)
+    return root / "eval"
+
+
 def hand_specs(reg: Registry | None = None) -> dict[str, SceneSpec]:
     """One hand-built spec per task (realistic body counts), keyed by task id."""
     reg = reg or load_registry()

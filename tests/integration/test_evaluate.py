@@ -4,10 +4,8 @@ import json
 
 import numpy as np
 import pytest
-from conftest import requires_bpy
+from conftest import render_eval_examples, requires_bpy
 
-from rigidbench import manifest
-from rigidbench.config import registry
 from rigidbench.evaluate import FeatureNets, evaluate
 from rigidbench.pipeline.predict import predict
 
@@ -16,15 +14,7 @@ pytestmark = [pytest.mark.integration, requires_bpy]
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
-    from rigidbench.pipeline.render import render_to_bundle
-
-    reg = registry()
-    root = tmp_path_factory.mktemp("data")
-    rows = manifest.eval_rows(reg)
-    for sample_id in ("00015", "00020"):  # free fall, ramp collision
-        row = next(r for r in rows if r.sample_id == sample_id)
-        render_to_bundle(row, reg, reg.preset("test"), root)
-    return root / "eval"
+    return render_eval_examples(tmp_path_factory.mktemp("data"), ("00015", "00020"))  # free fall, ramp collision
 
 
 def _run(data_dir, tmp_path, name, severity=1.0):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import requires_bpy
+from conftest import render_eval_examples, requires_bpy
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
@@ -15,8 +15,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
 import tiny_perception  # noqa: E402
 
-from rigidbench import manifest  # noqa: E402
-from rigidbench.config import registry  # noqa: E402
 from rigidbench.evaluate import METRICS, FeatureNets, evaluate  # noqa: E402
 from rigidbench.pipeline.predict import predict  # noqa: E402
 
@@ -25,13 +23,7 @@ pytestmark = [pytest.mark.integration, requires_bpy]
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
-    from rigidbench.pipeline.render import render_to_bundle
-
-    reg = registry()
-    root = tmp_path_factory.mktemp("data")
-    row = next(r for r in manifest.eval_rows(reg) if r.sample_id == "00015")  # free fall
-    render_to_bundle(row, reg, reg.preset("test"), root)
-    return root / "eval"
+    return render_eval_examples(tmp_path_factory.mktemp("data"), ("00015",))  # free fall
 
 
 def count_forward_calls(models: dict) -> dict:

@@ -8,10 +8,8 @@ import math
 
 import numpy as np
 import pytest
-from conftest import requires_bpy
+from conftest import render_eval_examples, requires_bpy
 
-from rigidbench import manifest
-from rigidbench.config import registry
 from rigidbench.evaluate import FeatureNets, evaluate
 from rigidbench.groundtruth.bundle import Sample
 from rigidbench.models.counterfactuals import MAX_DEPTH_OFFSET_M, depth_offsets
@@ -28,13 +26,7 @@ SAMPLE_ID = "00015"  # free fall: one pomegranate dropped ~0.58 m, lands at fram
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
-    from rigidbench.pipeline.render import render_to_bundle
-
-    reg = registry()
-    root = tmp_path_factory.mktemp("data")
-    row = next(r for r in manifest.eval_rows(reg) if r.sample_id == SAMPLE_ID)
-    render_to_bundle(row, reg, reg.preset("test"), root)
-    return root / "eval"
+    return render_eval_examples(tmp_path_factory.mktemp("data"), (SAMPLE_ID,))
 
 
 @pytest.fixture(scope="module")

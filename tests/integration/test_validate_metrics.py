@@ -4,10 +4,8 @@ import csv
 import json
 
 import pytest
-from conftest import requires_bpy
+from conftest import render_eval_examples, requires_bpy
 
-from rigidbench import manifest
-from rigidbench.config import registry
 from rigidbench.evaluate import FeatureNets
 from rigidbench.validation import validate_metrics
 
@@ -18,13 +16,7 @@ NO_WEIGHTS = "test: no DINOv2 weights on this machine"
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
-    from rigidbench.pipeline.render import render_to_bundle
-
-    reg = registry()
-    root = tmp_path_factory.mktemp("data")
-    row = next(r for r in manifest.eval_rows(reg) if r.sample_id == "00015")  # free fall
-    render_to_bundle(row, reg, reg.preset("test"), root)
-    return root / "eval"
+    return render_eval_examples(tmp_path_factory.mktemp("data"), ("00015",))  # free fall
 
 
 @pytest.fixture(scope="module")

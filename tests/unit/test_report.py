@@ -209,7 +209,9 @@ def test_metric_skipped_for_one_model_is_shown_as_skipped_and_not_ranked(report)
     gamma_cells = next(line for line in md.splitlines() if line.startswith("| gamma_run |")).split(" | ")
     assert gamma_cells[8] == "skipped"  # LPIPS is the 8th metric
     page = (report.parent / "report.html").read_text()
-    assert "LPIPS weights not found in the torch hub cache" in page
+    # The reason appears once, in a note naming the run it applies to.
+    assert page.count("LPIPS weights not found in the torch hub cache") == 1
+    assert "LPIPS not computed for gamma_run: LPIPS weights not found in the torch hub cache" in page
 
 
 # --------------------------------------------------------------------- paired comparisons

@@ -239,7 +239,7 @@ class Kit:
             return None
         column = self.intruded_column(merged, xy, z, rot_deg)
         if column is not None:
-            log.info("scene %s: left out %s at (%.2f, %.2f): it reaches into the clear space above support '%s'",
+            log.debug("scene %s: left out %s at (%.2f, %.2f): it reaches into the clear space above support '%s'",
                      self.scene.id, name, xy[0], xy[1], column)
             return None
         ob = to_object(merged, self._name(name), [self.mat(r) for r in roles], self.collection,

@@ -28,15 +28,7 @@ def load_dinov2(path: str | None = None, allow_download: bool = False):
     except ModuleNotFoundError:
         raise WeightsUnavailable("DINOv2 identity features need the 'transformers' package: "
                                  "pip install -e '.[neural]'") from None
-    found = weights.locate("dinov2", path)
-    if found is None and not allow_download:
-        raise WeightsUnavailable(weights.missing_message("dinov2", path))
-    source = str(found) if found is not None else DINOV2_MODEL
-    try:
-        return Dinov2Model.from_pretrained(source, local_files_only=found is not None)
-    except OSError as exc:
-        raise WeightsUnavailable(f"{weights.missing_message('dinov2', path)} "
-                                 f"(loading {source} failed: {exc})") from None
+    return weights.load_pretrained(Dinov2Model, "dinov2", path, allow_download)
 
 
 def load_identity_features(device: str | None = None, path: str | None = None, allow_download: bool = False,

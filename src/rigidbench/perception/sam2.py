@@ -52,15 +52,7 @@ def load_sam2(path: str | None = None, device: str = "cpu", dtype=None, allow_do
     except ModuleNotFoundError:
         raise WeightsUnavailable("SAM 2.1 actor masks need the 'transformers' package (>= 4.56): "
                                  "pip install -e '.[neural]'") from None
-    found = weights.locate("sam2", path)
-    if found is None and not allow_download:
-        raise WeightsUnavailable(weights.missing_message("sam2", path))
-    source = str(found) if found is not None else SAM2_MODEL
-    log.info("loading SAM 2.1 from %s", source)
-    try:
-        model = Sam2VideoModel.from_pretrained(source, local_files_only=found is not None)
-    except OSError as exc:
-        raise WeightsUnavailable(f"{weights.missing_message('sam2', path)} (loading {source} failed: {exc})") from None
+    model = weights.load_pretrained(Sam2VideoModel, "sam2", path, allow_download)
     dtype = dtype if dtype is not None else inference_dtype("sam2", device)
     return model.to(device=device, dtype=dtype).eval()
 

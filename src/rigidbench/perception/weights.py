@@ -186,6 +186,19 @@ def missing_message(name: str, path: str | Path | None = None) -> str:
             f"{'; '.join(looked_in(name, path))}. To use them, {fetch_hint(name)}.")
 
 
+def load_pretrained(cls, name: str, path: str | Path | None = None, allow_download: bool = False):
+    """``cls.from_pretrained`` (a transformers model class) from the local copy of weight ``name``, or
+    from the hub when ``allow_download``; WeightsUnavailable (naming where it looked) otherwise."""
+    found = locate(name, path)
+    if found is None and not allow_download:
+        raise WeightsUnavailable(missing_message(name, path))
+    source = str(found) if found is not None else spec(name).source
+    try:
+        return cls.from_pretrained(source, local_files_only=found is not None)
+    except OSError as exc:
+        raise WeightsUnavailable(f"{missing_message(name, path)} (loading {source} failed: {exc})") from None
+
+
 def require(name: str, path: str | Path | None = None) -> Path:
     """``locate`` or raise WeightsUnavailable with ``missing_message``."""
     found = locate(name, path)

@@ -45,12 +45,15 @@ def report_notes(data) -> list[str]:
     unranked = [name for name, r in zip(t.models, data.ranked) if not r]
     if unranked:
         notes.append(f"{', '.join(unranked)} is shown for comparison but takes no best / second-best marks.")
+    # One note per (measurement, reason), naming the runs it applies to: the reasons are long.
+    groups: dict[tuple[str, str], list[str]] = {}
     for m, run in enumerate(t.runs):
-        names = [METRICS[k].display_name for k, s in zip(t.metrics, t.skipped[m]) if s]
-        if names:
-            reasons = "; ".join(f"{k}: {v}" for k, v in run.skipped_metrics.items())
-            why = f" — {reasons}" if reasons else ""
-            notes.append(f"{run.name}: {', '.join(names)} not computed (skipped){why}.")
+        for k, s in zip(t.metrics, t.skipped[m]):
+            if s:
+                groups.setdefault((k, run.skipped_metrics.get(k, "")), []).append(run.name)
+    for (k, reason), names in groups.items():
+        who = f"all {len(names)} runs" if len(names) == len(t.runs) > 1 else ", ".join(names)
+        notes.append(f"{METRICS[k].display_name} not computed for {who}" + (f": {reason}" if reason else "."))
     if data.correlation is not None and not data.correlation.get("has_ci"):
         notes.append("The SSIM / ATE-3D correlation has no bootstrap interval with fewer than 3 models.")
     return notes
