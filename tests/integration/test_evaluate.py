@@ -88,3 +88,43 @@ def test_predict_resumes_and_rewrites_when_the_severity_changes(data_dir, tmp_pa
     predict("slow", data_dir, preds, 1.0, progress=False)
     assert (preds / "00015.mp4").stat().st_mtime_ns != stamps["00015.mp4"]  # new severity: written again
     assert json.loads((preds / "predictor.json").read_text()) == {"predictor": "slow", "severity": 1.0}
+
+
+IMAGE_SPACE = ("static", "slow", "fast", "delayed", "gamma", "camera-shake", "camera-drift", "background-wobble")
+
+
+@pytest.mark.parametrize("name", IMAGE_SPACE)
+def test_image_space_mode_at_zero_severity_is_the_reference(data_dir, name):
+    from rigidbench.groundtruth.bundle import Sample
+    from rigidbench.models.failure_modes import FAILURE_MODES
+    from rigidbench.perception.gt import reference_state
+
+    sample = Sample(data_dir / "00020")
+    pred = FAILURE_MODES[name](sample, 0.0)
+    ref = reference_state(sample)
+    assert np.array_equal(pred.frames, sample.frames)
+    for field in ("masks", "depth_m", "tracks", "visibility"):
+        assert np.array_equal(getattr(pred.state, field), getattr(ref, field)), field
+    assert np.allclose(pred.state.bg_affine, ref.bg_affine) and not np.any(pred.state.bg_flow)  # background still
+
+
+def _sweep(data_dir, tmp_path, name, severities=(0.25, 0.5, 1.0)):
+    out = []
+    for s in severities:
+        preds = tmp_path / "predictions" / f"{name}-{s}"
+        predict(name, data_dir, preds, s, progress=False)
+        out.append(evaluate(preds, data_dir, tmp_path / "runs" / f"{name}-{s}", nets=FeatureNets(),
+                            progress=False).results["overall"])
+    return out
+
+
+def test_severity_sweeps_move_the_metric_meant_to_see_them(data_dir, tmp_path):
+    wobble = [r["bgdrift"]["mean"] for r in _sweep(data_dir, tmp_path, "background-wobble")]
+    assert 0 < wobble[0] < wobble[1] < wobble[2]
+    shake = [r["bgdrift"]["mean"] for r in _sweep(data_dir, tmp_path, "camera-shake")]
+    assert max(shake) < 0.2 * wobble[2]  # a coherent image motion is removed by the fitted transform
+    gamma = _sweep(data_dir, tmp_path, "gamma")
+    ssim = [r["ssim"]["mean"] for r in gamma]
+    assert 1 > ssim[0] > ssim[1] > ssim[2]
+    ate3d = [r["ate3d"]["mean"] for r in gamma]
+    assert max(ate3d) - min(ate3d) < 1e-9  # appearance only: geometry untouched
