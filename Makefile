@@ -31,8 +31,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
+# Stage timings as JSON. The render and perception benchmarks take minutes on a CPU:
+#   $(PY) benchmarks/render.py    $(PY) benchmarks/perception.py --frames 8 --size 320x176
 benchmarks: $(STAMP)
 	$(PY) benchmarks/simulate.py
+	$(PY) benchmarks/metrics.py
+	$(PY) benchmarks/stats.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -374,3 +374,12 @@ def test_table_renderers_escape_model_names():
     md, tex = to_markdown(table), to_latex(table)
     assert "a\\|b_c&d" in md and "**1.0** [0.9, 1.1] (n=3)" in md
     assert r"a|b\_c\&d" in tex and r"caption 100\%" in tex and r"\textbf{1.0}" in tex
+
+
+def test_decimals_ignore_numerical_noise_beside_real_values():
+    from rigidbench.report.tables import decimals_for
+
+    assert decimals_for([8.2, 3e-5, 1e-9, 2e-12, 0.0]) == 2  # 8.20, not eight places for the noise
+    assert decimals_for([0.9, 0.8, 1.0]) == 3  # 0.900
+    assert decimals_for([0.0048, 0.0016, 0.0012]) == 5  # median 0.0016 -> 0.00160
+    assert decimals_for([1e-12]) == 6 and decimals_for([0.0, float("nan")]) == 3

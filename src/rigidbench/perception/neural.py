@@ -168,7 +168,9 @@ class NeuralBackend:
 
     def _cached(self, sample_id: str, role: str, key: str, compute: Callable[[], dict]) -> dict[str, np.ndarray]:
         """The arrays ``compute`` returns for (role, key), from the cache when present."""
-        digest = hashlib.sha256(f"{VERSION}|{role}|{self._identity(role)}|{key}".encode()).hexdigest()[:16]
+        # The device fixes the precision (bf16/fp16 on CUDA, float32 on CPU), so it is part of the key.
+        digest = hashlib.sha256(f"{VERSION}|{role}|{self._identity(role)}|{self.device}|{key}".encode()
+                                ).hexdigest()[:16]
         path = self.cache_dir / f"{sample_id}-{role}-{digest}.npz" if self.cache_dir is not None else None
         if path is not None and path.exists():
             with np.load(path, allow_pickle=False) as z:

@@ -55,12 +55,14 @@ class Table:
 
 
 def decimals_for(values) -> int:
-    """values: array-like float. Returns decimals giving ~3 significant digits at their median magnitude."""
+    """values: array-like float. Returns decimals giving ~3 significant digits at their median magnitude,
+    ignoring values below 1e-3 of the largest (numerical noise next to real errors) and at most 6."""
     arr = np.abs(np.asarray(values, dtype=np.float64).ravel())
     arr = arr[np.isfinite(arr) & (arr > 0)]
     if arr.size == 0:
         return 3
-    return int(np.clip(2 - math.floor(math.log10(float(np.median(arr)))), 0, 8))
+    arr = arr[arr >= 1e-3 * arr.max()]
+    return int(np.clip(2 - math.floor(math.log10(float(np.median(arr)))), 0, 6))
 
 
 def fmt(x: float, decimals: int, signed: bool = False) -> str:
