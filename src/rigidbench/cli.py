@@ -123,11 +123,15 @@ def cmd_demo(args) -> int:
 
     modes = [m for chunk in (args.modes or []) for m in _ids(chunk)] or None
     kwargs = {"modes": modes} if modes else {}
+    from .evaluate import EvaluationError
+
     try:
         return run_demo(args.out, quality=args.quality, severity=args.severity, perception=args.perception,
                         report=not args.no_report, **kwargs)
     except KeyError as exc:
         raise UserError(exc.args[0]) from None
+    except EvaluationError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _add_weights_arguments(parser) -> None:

@@ -45,3 +45,20 @@ def test_demo_rejects_an_unknown_mode(tmp_path, capsys):
     status = main(["demo", "--out", str(tmp_path), "--quality", "test", "--modes", "gravitee"])
     err = capsys.readouterr().err
     assert status == 2 and "gravitee" in err
+
+
+def test_neural_demo_without_weights_stops_before_rendering(tmp_path, monkeypatch, capsys):
+    hub_constants = pytest.importorskip("huggingface_hub.constants")
+    torch = pytest.importorskip("torch")
+    from rigidbench.perception import weights
+
+    monkeypatch.setattr(hub_constants, "HF_HUB_CACHE", str(tmp_path / "hf"))
+    monkeypatch.setattr(torch.hub, "_hub_dir", str(tmp_path / "torch_hub"))
+    for w in weights.WEIGHTS.values():
+        if w.env:
+            monkeypatch.delenv(w.env, raising=False)
+    out = tmp_path / "demo"
+    status = main(["demo", "--out", str(out), "--quality", "test", "--perception", "neural"])
+    err = capsys.readouterr().err
+    assert status == 2 and "rigidbench weights --download sam2" in err
+    assert not out.exists()  # nothing rendered
