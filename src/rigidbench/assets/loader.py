@@ -122,22 +122,12 @@ def remove_objects(objects: list) -> None:
 def load_mesh_vertices(obj: ObjectConfig) -> np.ndarray:
     """Vertices (V,3) float64 m of the user's mesh file for ``obj``, fitted as ``load_mesh_object`` fits
     them (for the collision hull); the imported objects are removed again."""
-    what = obj.source or f"object '{obj.id}'"
-    imported = import_objects(obj.mesh_path, what)
-    try:
-        part, _ = merge_meshes(imported)
-    finally:
-        remove_objects(imported)
-    if part is None:
-        raise ValueError(f"{what}: field 'mesh': {obj.mesh_path} contains no mesh with faces; export the model "
-                         "as a mesh (not curves or points)")
+    part, _, _ = _merged_user_mesh(obj)
     return np.asarray(fit(part, obj.size_m).vertices, dtype=np.float64)
 
 
-def load_mesh_object(obj: ObjectConfig, name: str):
-    """The user's mesh file for ``obj`` as one mesh object named ``name`` fitted to obj.size_m."""
-    from rigidbench.assets import materials as M
-
+def _merged_user_mesh(obj: ObjectConfig):
+    """(mesh part, materials, description) merged from the user's mesh file; the imports are removed."""
     what = obj.source or f"object '{obj.id}'"
     imported = import_objects(obj.mesh_path, what)
     try:
@@ -147,6 +137,14 @@ def load_mesh_object(obj: ObjectConfig, name: str):
     if part is None:
         raise ValueError(f"{what}: field 'mesh': {obj.mesh_path} contains no mesh with faces; export the model "
                          "as a mesh (not curves or points)")
+    return part, mats, what
+
+
+def load_mesh_object(obj: ObjectConfig, name: str):
+    """The user's mesh file for ``obj`` as one mesh object named ``name`` fitted to obj.size_m."""
+    from rigidbench.assets import materials as M
+
+    part, mats, what = _merged_user_mesh(obj)
     if len(part.vertices) > MAX_VERTICES:
         log.warning("%s: mesh %s has %d vertices; consider decimating it below %d for faster hulls and renders",
                     what, obj.mesh_path, len(part.vertices), MAX_VERTICES)
