@@ -153,6 +153,11 @@ def test_user_obj_mesh_is_loaded_and_fitted(empty_scene, tmp_path):
     apex = v[np.argmax(v[:, 2])]
     np.testing.assert_allclose(apex, [0.0, 0.0, 0.045], atol=1e-6)  # +y up in OBJ became +z up
     assert ob.data.materials[0] is not None
+    # The collision hull comes from the same fitted vertices, and the import leaves nothing behind.
+    from rigidbench.assets.objects import object_vertices
+
+    np.testing.assert_allclose(np.sort(object_vertices(cfg), axis=0), np.sort(v, axis=0), atol=1e-6)
+    assert set(bpy.data.objects) - before == {ob}
 
 
 def test_missing_user_mesh_names_the_config(empty_scene, tmp_path):
