@@ -149,3 +149,24 @@ def test_a_float_visibility_is_the_confidence_and_thresholded_for_visibility():
     _, visible, confidence = track_points(FloatVisibilityTracker(), frames, np.zeros((5, 2), np.float32))
     np.testing.assert_allclose(confidence[:, 0], [0, 0.25, 0.5, 0.75, 1.0])
     np.testing.assert_array_equal(visible[:, 2], [False, False, False, True, True])
+
+
+def test_cotracker_confidences_are_continuous_with_the_predictor_layout():
+    from rigidbench.perception.cotracker import SOFT_THRESHOLD, track_points
+
+    model = torch.hub.load(str(tiny_perception.HUB_DIR), "cotracker3_offline_predictor", source="local")
+    rng = np.random.default_rng(3)
+    frames = rng.integers(0, 256, size=(6, 36, 64, 3), dtype=np.uint8)
+    points = np.array([[5.0, 7.0], [40.0, 20.0], [63.0, 35.0]], np.float32)
+    tracks, visible, confidence = track_points(model, frames, points)
+    assert tracks.shape == (3, 6, 2) and confidence.dtype == np.float32
+    np.testing.assert_allclose(tracks[:, 0], points, atol=1e-4)  # the query frame shows the query
+    assert np.all(confidence[:, 0] == 1.0) and np.all((confidence >= 0) & (confidence <= 1))
+    assert len(np.unique(confidence[:, 1:])) > 2  # continuous, not a 0/1 decision
+    assert np.array_equal(visible, confidence > SOFT_THRESHOLD)
+    # Same tracks and decisions as the predictor's own public call.
+    video = torch.from_numpy(frames).permute(0, 3, 1, 2)[None].float()
+    queries = torch.cat([torch.zeros(1, 3, 1), torch.from_numpy(points)[None]], dim=2)
+    public_tracks, public_visible = model(video, queries=queries)
+    np.testing.assert_allclose(tracks, public_tracks[0].permute(1, 0, 2).numpy(), atol=1e-4)
+    assert np.array_equal(visible, public_visible[0].permute(1, 0).numpy())
