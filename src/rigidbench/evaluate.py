@@ -243,6 +243,19 @@ class EvaluationSummary:
     results: dict
 
 
+def ready_backend(perception: str, options: dict | None = None):
+    """The perception backend, after checking it has every network weight it needs (EvaluationError
+    listing each missing one, where it was looked for and how to fetch it, before any work starts)."""
+    from .perception.base import get_backend
+
+    backend = get_backend(perception, **(options or {}))
+    missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
+    if missing:
+        raise EvaluationError(f"{backend.name} perception cannot run: " + "\n  ".join(missing)
+                              + "\n  (`rigidbench weights --list` shows every weight and where it is looked for)")
+    return backend
+
+
 def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
              ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
              model: str | None = None, progress: bool = True,
@@ -253,7 +266,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
     ``out/cache/<backend>/``."""
     from .groundtruth.bundle import Sample
-    from .perception.base import Perception, PerceptionError, get_backend
+    from .perception.base import Perception, PerceptionError
     from .perception.gt import state_path
     from .video import VideoError, align_video, read_video, reference_times, resize_frames
 
@@ -269,13 +282,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             raise EvaluationError(f"unknown example id(s) {', '.join(unknown)} in {data_dir}")
         refs = [p for p in refs if p.name in set(ids)]
     refs = refs[:limit] if limit is not None else refs
-    backend = get_backend(perception, **(perception_options or {}))
+    backend = ready_backend(perception, perception_options)
     if hasattr(backend, "use_cache_dir"):
         backend.use_cache_dir(out_dir / "cache" / backend.name)
-    missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
-    if missing:
-        raise EvaluationError(f"{backend.name} perception cannot run: " + "\n  ".join(missing)
-                              + "\n  (`rigidbench weights --list` shows every weight and where it is looked for)")
     nets = nets if nets is not None else load_feature_nets()
     (out_dir / "examples").mkdir(parents=True, exist_ok=True)
     (out_dir / "cache").mkdir(exist_ok=True)

@@ -120,8 +120,6 @@ def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, lis
     for entry in sorted(pred_dir.iterdir()):
         if entry.name.startswith("."):
             continue  # hidden files, including half-written temporaries
-        if entry.name == "predictor.json":
-            continue  # the built-in predictor's settings
         if entry.name.endswith(STATE_SUFFIX):
             continue  # world state written by built-in predictors beside their videos
         if entry.stem not in report.references:

@@ -87,7 +87,7 @@ def test_predict_resumes_and_rewrites_when_the_severity_changes(data_dir, tmp_pa
     assert not list(preds.glob(".*partial*"))
     predict("slow", data_dir, preds, 1.0, progress=False)
     assert (preds / "00015.mp4").stat().st_mtime_ns != stamps["00015.mp4"]  # new severity: written again
-    assert json.loads((preds / "predictor.json").read_text()) == {"predictor": "slow", "severity": 1.0}
+    assert json.loads((preds / ".predictor.json").read_text()) == {"predictor": "slow", "severity": 1.0}
 
 
 IMAGE_SPACE = ("static", "slow", "fast", "delayed", "gamma", "camera-shake", "camera-drift", "background-wobble")

@@ -55,13 +55,9 @@ def run_demo(out_dir: Path, quality: str = "preview", severity: float = 0.5, per
     if unknown:
         raise KeyError(f"unknown demo mode(s) {', '.join(unknown)}; built-in predictors: {', '.join(FAILURE_MODES)}")
     if perception != "gt":  # check the networks before spending minutes on rendering
-        from ..evaluate import EvaluationError
-        from ..perception.base import get_backend
+        from ..evaluate import ready_backend
 
-        backend = get_backend(perception)
-        missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
-        if missing:
-            raise EvaluationError(f"the demo with {perception} perception cannot run: " + "\n  ".join(missing))
+        ready_backend(perception)
     started = time.time()
     out_dir = Path(out_dir)
     reg = registry()

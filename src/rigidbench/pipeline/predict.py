@@ -8,13 +8,13 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 
-SETTINGS_FILE = "predictor.json"
+SETTINGS_FILE = ".predictor.json"  # hidden: validate and evaluate skip it
 
 
 def finished_ids(out_dir: Path, name: str, severity: float) -> set[str]:
     """Ids whose video (written last, atomically) and state exist from a run with the same settings.
 
-    ``predictor.json`` records the predictor and severity of the last run; with other settings nothing
+    ``.predictor.json`` records the predictor and severity of the last run; with other settings nothing
     counts as finished and the selected examples are written again (other files are left alone)."""
     import json
 
