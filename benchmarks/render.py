@@ -3,6 +3,7 @@ the best device present (on a CPU only ``--paper-frames`` frames, 2 by default; 
 takes tens of seconds there).
 
     python benchmarks/render.py [--ids 00000 00014 00025 00030] [--paper-frames 2] [--skip-paper]
+                                [--preview-samples N]
 
 Per example and preset it reports the camera search, simulation and setup seconds, the data
 passes (index + Z) and RGB seconds per frame, and their sum per frame, as wall clock and as CPU
@@ -91,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="eval sample ids (default: four scenes with different lighting and materials)")
     parser.add_argument("--paper-frames", type=int, default=2, help="frames rendered at `paper` on a CPU")
     parser.add_argument("--skip-paper", action="store_true")
+    parser.add_argument("--preview-samples", type=int, default=None,
+                        help="render `preview` with this many samples instead of the preset's (to measure the "
+                             "speed/noise trade-off; the JSON records the samples used)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     from rigidbench import manifest
@@ -100,7 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = manifest.select(manifest.rows("eval", reg), args.ids)
     results = []
     for row in rows:
-        results.append(time_example(row, reg, reg.preset("preview"), device="cpu"))
+        preview = reg.preset("preview")
+        if args.preview_samples:
+            preview = dataclasses.replace(preview, samples=args.preview_samples)
+        results.append(time_example(row, reg, preview, device="cpu"))
         if not args.skip_paper:
             from rigidbench.blender.render import select_device
 
@@ -118,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
               "preview_cpu_seconds_per_frame": max(r["render_cpu_s_per_frame"] for r in preview),
               "preview_idle_estimate_s_per_frame": round(max(r["render_cpu_s_per_frame"] for r in preview) / cores, 4),
               "preview_target_s_per_frame": 0.5,
+              "preview_samples": preview[0]["samples"],
               "paper_s_per_frame": max((r["render_s_per_frame"] for r in results if r["preset"] == "paper"),
                                        default=None),
               "examples": results}

@@ -253,6 +253,15 @@ class RenderPreset:
     glossy_bounces: int
     transmission_bounces: int
     persistent_data: bool
+    # "full": path traced to the bounce limits with the light tree and bump mapping (the paper);
+    # "fast": Cycles fast GI past the first bounce, lights sampled by power, no bump mapping.
+    light_transport: str = "full"
+    # OpenImageDenoise quality: "high" (prefilter ACCURATE, the paper), "balanced" or "fast" (prefilter FAST).
+    denoise_quality: str = "high"
+
+
+LIGHT_TRANSPORTS = ("full", "fast")
+DENOISE_QUALITIES = ("high", "balanced", "fast")
 
 
 @dataclass(frozen=True)
@@ -498,7 +507,8 @@ def parse_presets(path: Path, data: Any) -> dict[str, RenderPreset]:
     for name in raw:
         p = r.sub("presets").sub(name)
         p.reject_unknown(("resolution", "frames", "samples", "adaptive_threshold", "denoise", "max_bounces",
-                          "diffuse_bounces", "glossy_bounces", "transmission_bounces", "persistent_data"))
+                          "diffuse_bounces", "glossy_bounces", "transmission_bounces", "persistent_data",
+                          "light_transport", "denoise_quality"))
         w, h = p.vector("resolution", 2, positive=True)
         if w != int(w) or h != int(h) or int(w) % 2 or int(h) % 2:
             raise _fail(path, f"presets.{name}.resolution", "width and height must be even integers (H.264)")
@@ -507,7 +517,9 @@ def parse_presets(path: Path, data: Any) -> dict[str, RenderPreset]:
             adaptive_threshold=p.float("adaptive_threshold", None) if p.has("adaptive_threshold") else None,
             denoise=p.bool("denoise"), max_bounces=p.int("max_bounces", lo=0),
             diffuse_bounces=p.int("diffuse_bounces", lo=0), glossy_bounces=p.int("glossy_bounces", lo=0),
-            transmission_bounces=p.int("transmission_bounces", lo=0), persistent_data=p.bool("persistent_data"))
+            transmission_bounces=p.int("transmission_bounces", lo=0), persistent_data=p.bool("persistent_data"),
+            light_transport=p.str("light_transport", "full", choices=LIGHT_TRANSPORTS),
+            denoise_quality=p.str("denoise_quality", "high", choices=DENOISE_QUALITIES))
     return out
 
 

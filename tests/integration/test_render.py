@@ -105,6 +105,8 @@ def test_each_task_renders_a_valid_bundle(rendered, reg, task_rows):
         assert s.masks.shape == (preset.frames, len(s.spec.bodies), H, W)
         assert s.depth.dtype == np.float32
         assert s.metadata["preset"] == QUALITY and s.metadata["render"]["device_kind"] == "CPU"
+        assert s.metadata["render"]["light_transport"] == preset.light_transport
+        assert s.metadata["render"]["samples"] == preset.samples
         assert s.prompt and s.prompt == s.spec.prompt == (path / B.PROMPT_FILE).read_text().strip()
         assert s.sample_id == task_rows[task].sample_id and s.task == task
         assert not (path.parent / f".{path.name}.tmp").exists()
@@ -383,6 +385,7 @@ def test_failing_example_is_reported_and_the_others_continue(reg, task_rows, tmp
 
 def test_fast_presets_approximate_light_transport_and_drop_bump_paper_keeps_both():
     # `preview` and `test` trade light transport and sub-pixel relief for speed; `paper` renders in full.
+    # The choice is the preset's `light_transport` and `denoise_quality` keys, not its name.
     import bpy
 
     from rigidbench.assets import materials as M
@@ -394,13 +397,21 @@ def test_fast_presets_approximate_light_transport_and_drop_bump_paper_keeps_both
     for name, fast in (("paper", False), ("preview", True), ("test", True)):
         R.light_transport(scene, reg.preset(name))
         assert scene.cycles.use_fast_gi is fast and scene.cycles.use_light_tree is (not fast), name
+    device = R.RenderDevice("CPU", ("cpu",))
+    for name, quality, prefilter in (("paper", "HIGH", "ACCURATE"), ("preview", "FAST", "FAST")):
+        R.beauty_mode(scene, reg.preset(name), device)
+        assert (scene.cycles.denoising_quality, scene.cycles.denoising_prefilter) == (quality, prefilter), name
+    mine = dataclasses.replace(reg.preset("paper"), name="mine", light_transport="fast", denoise_quality="balanced")
+    R.light_transport(scene, mine)
+    assert scene.cycles.use_fast_gi and not scene.cycles.use_light_tree
+    R.beauty_mode(scene, dataclasses.replace(mine, light_transport="full"), device)
+    assert scene.cycles.denoising_quality == "BALANCED"
     mats = [M.painted("rb_t_painted", (0.5, 0.5, 0.5)), M.wood("rb_t_wood", (0.6, 0.4, 0.2), 0.5)]
 
     def bump_links(mat):
         return [lk for lk in mat.node_tree.links if lk.from_node.bl_idname == "ShaderNodeBump"]
 
     assert all(len(bump_links(m)) == 1 for m in mats)
-    device = R.RenderDevice("CPU", ("cpu",))
     R.beauty_mode(scene, reg.preset("paper"), device)
     assert all(len(bump_links(m)) == 1 for m in mats)  # paper keeps its bump mapping
     assert R.drop_bump_mapping() == 2

@@ -24,6 +24,8 @@ def test_registry_counts_and_partitions():
     assert reg.presets["paper"].resolution == (1280, 704) and reg.presets["paper"].samples == 32
     assert reg.presets["paper"].adaptive_threshold == 0.05 and reg.presets["paper"].frames == 49
     assert reg.presets["preview"].resolution == (320, 176) and reg.presets["preview"].samples == 8
+    assert (reg.presets["paper"].light_transport, reg.presets["paper"].denoise_quality) == ("full", "high")
+    assert (reg.presets["preview"].light_transport, reg.presets["preview"].denoise_quality) == ("fast", "fast")
     assert len(reg.objects_in("train")) == 16 and len(reg.objects_in("held_out")) == 8
     assert reg.scenes_in("held_out") == ("beach_gazebo", "butterfly_mural_room", "cozy_living_room",
                                          "modern_warm_kitchen")
@@ -112,3 +114,19 @@ def test_user_mesh_must_exist(config_copy):
     Path(config_copy / "objects" / "meshes").mkdir()
     (config_copy / "objects" / "meshes" / "kiwi.glb").write_bytes(b"glTF")
     assert load_registry().object("kiwi").mesh_path.endswith("kiwi.glb")
+
+
+def test_preset_transport_keys_default_to_the_paper_and_reject_unknown_values(config_copy):
+    path = config_copy / "render.yaml"
+    text = path.read_text()
+    custom = ("  quick:\n    resolution: [160, 88]\n    frames: 6\n    samples: 3\n    denoise: true\n"
+              "    max_bounces: 2\n    diffuse_bounces: 1\n    glossy_bounces: 1\n    transmission_bounces: 1\n"
+              "    persistent_data: true\n")
+    path.write_text(text.rstrip("\n") + "\n" + custom)
+    quick = load_registry().preset("quick")
+    assert (quick.light_transport, quick.denoise_quality, quick.samples) == ("full", "high", 3)
+    path.write_text(text.rstrip("\n") + "\n" + custom + "    light_transport: quick\n")
+    with pytest.raises(ConfigError) as exc:
+        load_registry()
+    msg = str(exc.value)
+    assert str(path) in msg and "presets.quick.light_transport" in msg and "'quick'" in msg and "fast" in msg

@@ -40,11 +40,8 @@ DATA_FILTER_WIDTH_PX = 0.01
 BEAUTY_FILTER_WIDTH_PX = 1.5  # Cycles' default Blackman-Harris width
 BACKGROUND_DEPTH_M = 1e9  # Cycles writes 1e10 where a ray leaves the scene; stored as +inf
 POSE_TOLERANCE_M = 1e-5
-DENOISE_PREFILTER = {"paper": "ACCURATE"}  # other presets use "FAST" (quicker, for previews and tests)
-# Presets rendered with the fast light transport and surface detail described in configs/render.yaml (Cycles'
-# fast GI after the first bounce, lights sampled by power instead of the light tree, OpenImageDenoise quality
-# FAST, no bump mapping); every other preset, `paper` included, is path traced in full.
-FAST_PRESETS = frozenset({"preview", "test"})
+# A preset's denoise_quality -> (OpenImageDenoise quality, prefilter of its albedo and normal guides).
+DENOISE_SETTINGS = {"high": ("HIGH", "ACCURATE"), "balanced": ("BALANCED", "FAST"), "fast": ("FAST", "FAST")}
 DEVICE_CHOICES = ("auto", "cpu", "gpu")
 
 
@@ -146,24 +143,23 @@ def beauty_mode(scene: Any, preset: RenderPreset, device: RenderDevice) -> None:
     c.use_denoising = bool(preset.denoise)
     if preset.denoise:
         c.denoiser = "OPTIX" if device.kind == "OPTIX" else "OPENIMAGEDENOISE"
-        c.denoising_prefilter = DENOISE_PREFILTER.get(preset.name, "FAST")
+        c.denoising_quality, c.denoising_prefilter = DENOISE_SETTINGS[preset.denoise_quality]
         c.denoising_input_passes = "RGB_ALBEDO_NORMAL"
         c.denoising_use_gpu = device.is_gpu
-        c.denoising_quality = "FAST" if preset.name in FAST_PRESETS else "HIGH"
     c.filter_width = BEAUTY_FILTER_WIDTH_PX
     c.max_bounces = preset.max_bounces
     scene.view_layers[0].material_override = None
     scene.render.use_compositing = False
-    if preset.name in FAST_PRESETS:
+    if preset.light_transport == "fast":
         drop_bump_mapping()
 
 
 def light_transport(scene: Any, preset: RenderPreset) -> None:
-    """Fast presets (``FAST_PRESETS``): indirect light past the first bounce approximated by ambient
-    occlusion against the world (Cycles "fast GI"), and one light picked per shading point by power
-    rather than by the light tree; about 2.5x cheaper per sample in the furnished rooms. Other presets
-    path trace every bounce up to the preset's limits with the light tree."""
-    c, fast = scene.cycles, preset.name in FAST_PRESETS
+    """``light_transport: fast``: indirect light past the first bounce approximated by ambient occlusion
+    against the world (Cycles "fast GI"), and one light picked per shading point by power rather than
+    by the light tree; about 2.5x cheaper per sample in the furnished rooms. ``full`` path traces every
+    bounce up to the preset's limits with the light tree."""
+    c, fast = scene.cycles, preset.light_transport == "fast"
     c.use_fast_gi = fast
     c.fast_gi_method = "REPLACE"
     c.ao_bounces_render = 1
@@ -509,6 +505,6 @@ def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
 
 
 __all__ = ["RenderDevice", "select_device", "configure_cycles", "beauty_mode", "light_transport",
-           "drop_bump_mapping", "FAST_PRESETS", "data_mode", "add_pass_output",
+           "drop_bump_mapping", "DENOISE_SETTINGS", "data_mode", "add_pass_output",
            "pass_file", "read_passes", "Dressing", "assets_available", "dress_scene", "ExampleRender",
            "build_search_scene", "resolve_camera", "render_example", "DEVICE_CHOICES"]

@@ -91,7 +91,8 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
     write_video(tmp / B.VIDEO_FILE, frames, fps=float(spec.sim.fps))
     render_facts = {"engine": "CYCLES", "device": result.device.describe(), "device_kind": result.device.kind,
                     "samples": preset.samples, "adaptive_threshold": preset.adaptive_threshold,
-                    "denoise": preset.denoise, "max_bounces": preset.max_bounces,
+                    "denoise": preset.denoise, "denoise_quality": preset.denoise_quality if preset.denoise else None,
+                    "light_transport": preset.light_transport, "max_bounces": preset.max_bounces,
                     "diffuse_bounces": preset.diffuse_bounces, "glossy_bounces": preset.glossy_bounces,
                     "transmission_bounces": preset.transmission_bounces,
                     "persistent_data": preset.persistent_data, "motion_blur": False, "depth_of_field": False,
