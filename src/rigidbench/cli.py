@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -185,12 +186,24 @@ def _add_selection(p: argparse.ArgumentParser, split_default: str = "eval") -> N
     p.add_argument("--limit", type=int, help="only the first N selected examples")
 
 
+def layer_config_dirs(dirs) -> None:
+    """Make ``--config`` directories apply to every registry this process and its workers load (predictors,
+    evaluation and counterfactual re-renders load it deep inside) by appending them to
+    $RIGIDBENCH_CONFIG_PATH; raises ConfigError naming a directory that does not exist."""
+    from .config import config_dirs
+
+    env = [p for p in os.environ.get("RIGIDBENCH_CONFIG_PATH", "").split(os.pathsep) if p]
+    os.environ["RIGIDBENCH_CONFIG_PATH"] = os.pathsep.join(env + [str(Path(d).resolve()) for d in dirs])
+    config_dirs()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rigidbench",
         description="RigidBench: simulator-grounded evaluation of rigid-body physics in video generation models.")
     parser.add_argument("--config", action="append", default=[], metavar="DIR",
-                        help="extra configuration directory layered over the packaged configs (repeatable)")
+                        help="extra configuration directory layered over the packaged configs and "
+                             "$RIGIDBENCH_CONFIG_PATH, for every stage of the command (repeatable)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
@@ -288,6 +301,9 @@ def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
 
     try:
+        if args.config:
+            layer_config_dirs(args.config)
+            args.config = []  # now in the environment; passing them again would layer them twice
         return int(args.func(args) or 0)
     except (UserError, ConfigError) as exc:
         print(f"rigidbench {args.command}: error: {exc}", file=sys.stderr)

@@ -420,3 +420,18 @@ def test_fast_presets_approximate_light_transport_and_drop_bump_paper_keeps_both
     assert not bsdf.inputs["Normal"].is_linked and bsdf.outputs["BSDF"].is_linked
     assert R.drop_bump_mapping() == 0
     del bpy
+
+
+def test_select_device_with_blender_probes_the_gpu_backends_and_falls_back_to_the_cpu():
+    from rigidbench.blender import render as R
+
+    chosen = R.select_device("auto")
+    if chosen.is_gpu:
+        assert chosen.kind in ("OPTIX", "CUDA") and R.select_device("gpu") == chosen
+    else:  # no OptiX or CUDA device visible here: "gpu" must refuse rather than render on the CPU
+        assert chosen.kind == "CPU"
+        with pytest.raises(RuntimeError, match="no OptiX or CUDA device"):
+            R.select_device("gpu")
+    assert R.select_device("cpu").kind == "CPU"
+    with pytest.raises(ValueError, match="unknown render device 'tpu'"):
+        R.select_device("tpu")

@@ -130,3 +130,24 @@ def test_preset_transport_keys_default_to_the_paper_and_reject_unknown_values(co
         load_registry()
     msg = str(exc.value)
     assert str(path) in msg and "presets.quick.light_transport" in msg and "'quick'" in msg and "fast" in msg
+
+
+def test_cli_config_reaches_registries_loaded_deep_inside_commands(tmp_path, monkeypatch, capsys):
+    # predict, evaluate and counterfactual re-renders call registry() without arguments; --config must reach them.
+    from rigidbench.cli import main
+    from rigidbench.config import registry
+
+    monkeypatch.setenv("RIGIDBENCH_CONFIG_PATH", "")  # (delenv of an unset variable would not undo main's export)
+    extra = tmp_path / "cfg"
+    extra.mkdir()
+    text = (PACKAGE_CONFIG_DIR / "render.yaml").read_text()
+    (extra / "render.yaml").write_text(text.rstrip("\n") + "\n  quick:\n    resolution: [160, 88]\n    frames: 6\n"
+                                       "    samples: 3\n    denoise: false\n    max_bounces: 2\n"
+                                       "    diffuse_bounces: 1\n    glossy_bounces: 1\n"
+                                       "    transmission_bounces: 1\n    persistent_data: true\n")
+    with pytest.raises(ConfigError, match="unknown render preset 'quick'"):
+        registry().preset("quick")
+    assert main(["--config", str(extra), "manifest", "--split", "eval", "--out", str(tmp_path / "m.jsonl")]) == 0
+    assert registry().preset("quick").samples == 3
+    assert main(["--config", str(tmp_path / "missing"), "manifest", "--split", "eval"]) == 2
+    assert str(tmp_path / "missing") in capsys.readouterr().err

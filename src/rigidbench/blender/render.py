@@ -78,8 +78,14 @@ def select_device(request: str = "auto") -> RenderDevice:
 
     if request not in DEVICE_CHOICES:
         raise ValueError(f"unknown render device '{request}'; choose one of {', '.join(DEVICE_CHOICES)}")
+    prefs = None if request == "cpu" else bpy.context.preferences.addons["cycles"].preferences
+    return pick_device(prefs, request)
+
+
+def pick_device(prefs: Any, request: str) -> RenderDevice:
+    """``select_device`` on Cycles' add-on preferences ``prefs`` (None for "cpu"): the first of OptiX and
+    CUDA with a device of its own type is enabled (its devices only) and returned."""
     if request != "cpu":
-        prefs = bpy.context.preferences.addons["cycles"].preferences
         prefs.refresh_devices()  # Blender does not probe GPUs at startup
         for kind in ("OPTIX", "CUDA"):
             try:
@@ -504,7 +510,7 @@ def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
     return dataclasses.replace(spec, render_preset=preset)
 
 
-__all__ = ["RenderDevice", "select_device", "configure_cycles", "beauty_mode", "light_transport",
+__all__ = ["RenderDevice", "select_device", "pick_device", "configure_cycles", "beauty_mode", "light_transport",
            "drop_bump_mapping", "DENOISE_SETTINGS", "data_mode", "add_pass_output",
            "pass_file", "read_passes", "Dressing", "assets_available", "dress_scene", "ExampleRender",
            "build_search_scene", "resolve_camera", "render_example", "DEVICE_CHOICES"]
