@@ -1,7 +1,7 @@
 """The render stage: manifest rows -> sample bundles in DATA/<split>/<id>/.
 
-Each example runs in its own child process (``multiprocessing`` spawn; bpy is imported only there),
-so a crash inside Blender loses only that example; ``--workers N`` runs N at once. A bundle is
+Each example runs in its own child Python process (bpy is imported only there; it inherits the
+environment, $RIGIDBENCH_CONFIG_PATH included), so a crash inside Blender loses only that example; ``--workers N`` runs N at once. A bundle is
 built in ``DATA/<split>/.<id>.tmp`` and renamed into place when complete and validated, so a
 rerun skips finished examples and restarts interrupted ones from scratch. Failures are reported
 with the example id and the reason; the other examples continue.
