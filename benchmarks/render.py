@@ -102,12 +102,12 @@ def main(argv: list[str] | None = None) -> int:
 
     reg = registry()
     rows = manifest.select(manifest.rows("eval", reg), args.ids)
+    preview_preset = reg.preset("preview")
+    if args.preview_samples:
+        preview_preset = dataclasses.replace(preview_preset, samples=args.preview_samples)
     results = []
     for row in rows:
-        preview = reg.preset("preview")
-        if args.preview_samples:
-            preview = dataclasses.replace(preview, samples=args.preview_samples)
-        results.append(time_example(row, reg, preview, device="cpu"))
+        results.append(time_example(row, reg, preview_preset, device="cpu"))
         if not args.skip_paper:
             from rigidbench.blender.render import select_device
 
@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
               "preview_cpu_seconds_per_frame": max(r["render_cpu_s_per_frame"] for r in preview),
               "preview_idle_estimate_s_per_frame": round(max(r["render_cpu_s_per_frame"] for r in preview) / cores, 4),
               "preview_target_s_per_frame": 0.5,
-              "preview_samples": preview[0]["samples"],
+              "preview_samples": preview_preset.samples,
               "paper_s_per_frame": max((r["render_s_per_frame"] for r in results if r["preset"] == "paper"),
                                        default=None),
               "examples": results}

@@ -23,7 +23,7 @@ def _split_rows(args):
     from . import manifest
     from .config import registry
 
-    reg = registry(args.config)
+    reg = registry()
     rows = manifest.rows(args.split, reg)
     ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
     try:
@@ -39,7 +39,7 @@ def cmd_manifest(args) -> int:
     from . import manifest
     from .config import registry
 
-    rows = manifest.rows(args.split, registry(args.config))
+    rows = manifest.rows(args.split, registry())
     out = args.out or Path("manifests") / f"{args.split}.jsonl"
     manifest.write(out, rows)
     print(f"wrote {len(rows)} {args.split} rows to {out}")
@@ -303,7 +303,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.config:
             layer_config_dirs(args.config)
-            args.config = []  # now in the environment; passing them again would layer them twice
         return int(args.func(args) or 0)
     except (UserError, ConfigError) as exc:
         print(f"rigidbench {args.command}: error: {exc}", file=sys.stderr)

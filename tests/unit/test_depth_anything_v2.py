@@ -12,13 +12,7 @@ from rigidbench.perception.depth_anything_v2 import (DAV2_CHECKPOINT_REPO, DAV2_
 from rigidbench.perception.features import WeightsUnavailable  # noqa: E402
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run faster on one thread than oversubscribed on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def tiny_model(seed=0):

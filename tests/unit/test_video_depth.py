@@ -19,13 +19,7 @@ from rigidbench.perception.video_depth import (VDA_ENV, VDA_FILENAME, VDA_REPO, 
                                                network_size, preprocess_frames, stitch_windows, video_disparity,
                                                window_output_frames, window_slot_frames)
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run faster on one thread than oversubscribed on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 TINY = dict(embed_dim=32, depth=4, num_heads=2, layer_idx=(0, 1, 2, 3), features=16, out_channels=(16, 16, 32, 32),

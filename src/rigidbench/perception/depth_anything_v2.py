@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from .features import WeightsUnavailable
-from .video_depth import autocast_dtype, check_frames, hf_cached_file, network_size, preprocess_frames, vda_config
+from .video_depth import (autocast_dtype, build_vda_network, check_frames, hf_cached_file, network_size,
+                          preprocess_frames)
 
 log = logging.getLogger(__name__)
 
@@ -43,15 +44,9 @@ def _unavailable(where: str) -> WeightsUnavailable:
 
 def build_depth_anything_v2(encoder: str = "vitl", device="cpu", **overrides):
     """Randomly initialised original-layout DepthAnythingV2 in eval mode; ``device="meta"`` allocates nothing."""
-    import torch
-
     from .vda_model import DepthAnythingV2
 
-    cfg = vda_config(encoder, **overrides)
-    if str(device) == "meta":
-        with torch.device("meta"):
-            return DepthAnythingV2(cfg).eval()
-    return DepthAnythingV2(cfg).to(device).eval()
+    return build_vda_network(DepthAnythingV2, encoder, device, **overrides)
 
 
 def _load_checkpoint(path: Path, encoder: str = "vitl", **overrides):

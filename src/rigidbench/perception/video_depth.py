@@ -62,17 +62,23 @@ def vda_config(encoder: str = "vitl", **overrides):
     return VDAConfig(**fields)
 
 
-def build_video_depth_anything(encoder: str = "vitl", device="cpu", **overrides):
-    """Randomly initialised VideoDepthAnything in eval mode; ``device="meta"`` allocates no memory."""
+def build_vda_network(model_cls, encoder: str = "vitl", device="cpu", **overrides):
+    """Randomly initialised ``model_cls`` (``vda_model.VideoDepthAnything`` or ``DepthAnythingV2``) for
+    ``vda_config(encoder, **overrides)``, in eval mode; ``device="meta"`` allocates no memory."""
     import torch
-
-    from .vda_model import VideoDepthAnything
 
     cfg = vda_config(encoder, **overrides)
     if str(device) == "meta":
         with torch.device("meta"):
-            return VideoDepthAnything(cfg).eval()
-    return VideoDepthAnything(cfg).to(device).eval()
+            return model_cls(cfg).eval()
+    return model_cls(cfg).to(device).eval()
+
+
+def build_video_depth_anything(encoder: str = "vitl", device="cpu", **overrides):
+    """Randomly initialised VideoDepthAnything in eval mode; ``device="meta"`` allocates no memory."""
+    from .vda_model import VideoDepthAnything
+
+    return build_vda_network(VideoDepthAnything, encoder, device, **overrides)
 
 
 def expected_state_dict_shapes(encoder: str = "vitl", **overrides) -> dict[str, tuple[int, ...]]:

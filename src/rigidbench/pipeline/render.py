@@ -1,8 +1,8 @@
 """The render stage: manifest rows -> sample bundles in DATA/<split>/<id>/.
 
 Each example runs in its own child Python process (bpy is imported only there; it inherits the
-environment, $RIGIDBENCH_CONFIG_PATH included), so a crash inside Blender loses only that example; ``--workers N`` runs N at once. A bundle is
-built in ``DATA/<split>/.<id>.tmp`` and renamed into place when complete and validated, so a
+environment, $RIGIDBENCH_CONFIG_PATH included), so a crash inside Blender loses only that example;
+``--workers N`` runs N at once. A bundle is built in ``DATA/<split>/.<id>.tmp`` and renamed into place when complete and validated, so a
 rerun skips finished examples and restarts interrupted ones from scratch. Failures are reported
 with the example id and the reason; the other examples continue.
 """
@@ -16,6 +16,7 @@ import shutil
 import signal
 import sys
 import time
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -90,12 +91,8 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
     frames = np.stack([np.asarray(Image.open(tmp / B.FRAMES_DIR / B.frame_name(k)).convert("RGB")) for k in range(T)])
     write_video(tmp / B.VIDEO_FILE, frames, fps=float(spec.sim.fps))
     render_facts = {"engine": "CYCLES", "device": result.device.describe(), "device_kind": result.device.kind,
-                    "samples": preset.samples, "adaptive_threshold": preset.adaptive_threshold,
-                    "denoise": preset.denoise, "denoise_quality": preset.denoise_quality if preset.denoise else None,
-                    "light_transport": preset.light_transport, "max_bounces": preset.max_bounces,
-                    "diffuse_bounces": preset.diffuse_bounces, "glossy_bounces": preset.glossy_bounces,
-                    "transmission_bounces": preset.transmission_bounces,
-                    "persistent_data": preset.persistent_data, "motion_blur": False, "depth_of_field": False,
+                    **{k: v for k, v in dataclasses.asdict(preset).items() if k not in ("name", "resolution", "frames")},
+                    "motion_blur": False, "depth_of_field": False,
                     "seed": spec.seed, "data_passes": "1 sample at pixel centres (filter width 0.01 px)",
                     "color_management": result.color_management, "procedural_assets": result.uses_assets}
     software = {**result.software, "rigidbench": __version__, "python": sys.version.split()[0],
@@ -340,8 +337,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .. import manifest
     from ..config import registry
 
-    config_dirs = list(getattr(args, "config", None) or [])
-    reg = registry(config_dirs)
+    reg = registry()  # --config directories reach here (and the workers) through $RIGIDBENCH_CONFIG_PATH
     try:
         rows = manifest.select(manifest.rows(args.split, reg), _ids(args.ids) or None, args.limit)
     except KeyError as exc:
@@ -355,7 +351,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                           "install it with `pip install -e '.[sim]'`")
     data = Path(args.data)
     done, failures = render_rows(rows, reg, data, quality=args.quality, workers=args.workers, device=args.device,
-                                 config_dirs=config_dirs, progress=not getattr(args, "no_progress", False),
+                                 progress=not getattr(args, "no_progress", False),
                                  quiet=not getattr(args, "verbose", False))
     skipped = len(rows) - len(done) - len(failures)
     print(f"rendered {len(done)}, skipped {skipped} complete, failed {len(failures)} of {len(rows)} "
