@@ -7,12 +7,9 @@ Importing the package is cheap: heavy stages (bpy, torch, av) load only when use
         example.id, example.image, example.prompt, example.negative_prompt
 """
 
+# benchmark.py needs the standard library only, so importing it here keeps `import rigidbench` cheap.
+from .benchmark import Benchmark, Example
+
 __version__ = "0.1.0"
 
-
-def __getattr__(name: str):
-    if name in ("Benchmark", "Example"):
-        from . import benchmark
-
-        return getattr(benchmark, name)
-    raise AttributeError(f"module 'rigidbench' has no attribute '{name}'")
+__all__ = ["Benchmark", "Example", "__version__"]

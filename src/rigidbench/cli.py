@@ -8,48 +8,80 @@ import os
 import sys
 from pathlib import Path
 
+from .context import RunContext
+from .errors import RigidBenchError, UserError
+
 DEFAULT_DATA = Path("data")
-
-
-class UserError(Exception):
-    """An error caused by the user's input: printed as one line, exit status 2."""
+CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
 
 
 def _ids(value: str) -> list[str]:
     return [v.strip() for v in value.replace(",", " ").split() if v.strip()]
 
 
-def _split_rows(args):
-    from . import manifest
-    from .config import registry
+def _selected_ids(args) -> list[str] | None:
+    return [i for chunk in (args.ids or []) for i in _ids(chunk)] or None
 
-    reg = registry()
-    rows = manifest.rows(args.split, reg)
-    ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
+
+def _split_dir(args) -> Path:
+    """The reference split directory ``--data`` (and ``--split``) name; BundleError with a did-you-mean."""
+    from .groundtruth.bundle import resolve_split_dir
+
+    return resolve_split_dir(args.data, getattr(args, "split", None))
+
+
+def _split_rows(args, ctx: RunContext):
+    from . import manifest
+
+    reg = ctx.registry
     try:
-        return reg, manifest.select(rows, ids or None, args.limit)
+        return reg, manifest.select(manifest.rows(args.split, reg), _selected_ids(args), args.limit)
     except KeyError as exc:
         raise UserError(exc.args[0]) from None
+
+
+def build_context(args) -> RunContext:
+    """The run context of one command: $RIGIDBENCH_CONFIG_PATH, then each --config, layered over the packaged
+    configs (the only place the environment variable is read); ConfigError names a missing directory."""
+    from .config import config_dirs
+
+    env = [Path(p) for p in os.environ.get(CONFIG_PATH_ENV, "").split(os.pathsep) if p]
+    dirs = tuple(p.resolve() for p in env + [Path(d) for d in args.config])
+    config_dirs(dirs)  # check they exist before any work starts
+    return RunContext(config_dirs=dirs, device=getattr(args, "net_device", None))
+
+
+def load_plugins(modules) -> None:
+    """Import each plug-in module (it registers its entries when imported); a missing one is a UserError."""
+    import importlib
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name and name.startswith(exc.name):
+                raise UserError(f"--plugin {name}: no module named '{exc.name}' (is it installed or on "
+                                "PYTHONPATH?)") from None
+            raise
 
 
 # -- subcommands ---------------------------------------------------------------------------------
 
 
-def cmd_manifest(args) -> int:
+def cmd_manifest(args, ctx: RunContext) -> int:
     from . import manifest
-    from .config import registry
 
-    rows = manifest.rows(args.split, registry())
+    rows = manifest.rows(args.split, ctx.registry)
     out = args.out or Path("manifests") / f"{args.split}.jsonl"
     manifest.write(out, rows)
     print(f"wrote {len(rows)} {args.split} rows to {out}")
     return 0
 
 
-def cmd_simulate(args) -> int:
+def cmd_simulate(args, ctx: RunContext) -> int:
     from .pipeline.simulate import simulate_rows
 
-    reg, rows = _split_rows(args)
+    reg, rows = _split_rows(args, ctx)
     out = args.out or DEFAULT_DATA / args.split
     failures, skipped = simulate_rows(rows, reg, Path(out))
     print(f"simulated {len(rows) - len(failures) - len(skipped)} of {len(rows)} examples into {out} "
@@ -59,35 +91,30 @@ def cmd_simulate(args) -> int:
     return 1 if failures else 0
 
 
-def cmd_inputs(args) -> int:
+def cmd_inputs(args, ctx: RunContext) -> int:
     from .benchmark import write_inputs
 
     try:
-        out = write_inputs(args.data, args.out)
+        out = write_inputs(_split_dir(args), args.out)
     except FileNotFoundError as exc:
         raise UserError(str(exc)) from None
     print(f"wrote {out}")
     return 0
 
 
-def cmd_validate(args) -> int:
+def cmd_validate(args, ctx: RunContext) -> int:
     from .validate import main as validate_main
 
-    return validate_main(args.predictions, args.data)
+    return validate_main(args.predictions, _split_dir(args))
 
 
-def cmd_evaluate(args) -> int:
-    from .evaluate import EvaluationError, evaluate
+def cmd_evaluate(args, ctx: RunContext) -> int:
+    from .evaluation import evaluate
 
-    ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
     out = args.out or Path("runs") / args.predictions.name
-    try:
-        options = ({"depth_model": args.depth_model, "device": args.device}
-                   if args.perception == "neural" else None)
-        summary = evaluate(args.predictions, args.data, out, perception=args.perception, ids=ids or None,
-                           limit=args.limit, model=args.model, perception_options=options)
-    except EvaluationError as exc:
-        raise UserError(str(exc)) from None
+    options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
+    summary = evaluate(args.predictions, _split_dir(args), out, perception=args.perception, ids=_selected_ids(args),
+                       limit=args.limit, model=args.model, perception_options=options)
     overall = summary.results["overall"]
     print(f"{summary.results['model']}: {len(summary.evaluated)} evaluated, {len(summary.reused)} unchanged "
           f"(reused), {len(summary.failed)} failed -> {out}")
@@ -103,36 +130,47 @@ def cmd_evaluate(args) -> int:
     return 1 if summary.failed else 0
 
 
-def cmd_predict(args) -> int:
-    from .evaluate import EvaluationError
+def format_predictors() -> str:
+    """The predictor registry as a table: name, kind, what it needs and writes, description."""
+    from .predictors import PREDICTORS
+
+    lines = [f"{'name':18s} {'kind':13s} {'needs':8s} {'writes':12s} description"]
+    for name, info in PREDICTORS.items():
+        needs = "Blender" if info.needs_blender else "-"
+        writes = "video+state" if info.writes_state else "video"
+        lines.append(f"{name:18s} {info.kind.value:13s} {needs:8s} {writes:12s} {info.description}")
+    lines.append("\nyour own model: rigidbench predict package.module:MyModel (a Predictor subclass or a function "
+                 "f(sample, ctx) -> Prediction)")
+    return "\n".join(lines)
+
+
+def cmd_predict(args, ctx: RunContext) -> int:
     from .pipeline.predict import predict
+    from .predictors import PredictContext, predictor_info
 
-    ids = [i for chunk in (args.ids or []) for i in _ids(chunk)]
-    out = args.out or Path("predictions") / args.name
-    try:
-        written, failed = predict(args.name, args.data, out, args.severity, ids or None, args.limit)
-    except (KeyError, ValueError, EvaluationError) as exc:
-        raise UserError(exc.args[0]) from None
-    print(f"{args.name} (severity {args.severity}): wrote {len(written)} predictions to {out}")
-    for sample_id, reason in failed.items():
+    if args.list:
+        print(format_predictors())
+        return 0
+    if not args.name:
+        raise UserError("name a predictor (rigidbench predict --list shows them)")
+    info = predictor_info(args.name)
+    out = args.out or Path("predictions") / info.name
+    summary = predict(args.name, _split_dir(args), out, PredictContext(ctx, args.severity, args.seed),
+                      _selected_ids(args), args.limit)
+    print(f"{info.name} (severity {args.severity}): {len(summary.written)} predictions in {out} "
+          f"({len(summary.skipped)} already there), {len(summary.failed)} failed")
+    for sample_id, reason in summary.failed.items():
         print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
-    return 1 if failed else 0
+    return 1 if summary.failed else 0
 
 
-def cmd_demo(args) -> int:
+def cmd_demo(args, ctx: RunContext) -> int:
     from .pipeline.demo import run_demo
 
     modes = [m for chunk in (args.modes or []) for m in _ids(chunk)] or None
     kwargs = {"modes": modes} if modes else {}
-    from .evaluate import EvaluationError
-
-    try:
-        return run_demo(args.out, quality=args.quality, severity=args.severity, perception=args.perception,
-                        report=not args.no_report, **kwargs)
-    except KeyError as exc:
-        raise UserError(exc.args[0]) from None
-    except EvaluationError as exc:
-        raise UserError(str(exc)) from None
+    return run_demo(args.out, quality=args.quality, severity=args.severity, perception=args.perception,
+                    report=not args.no_report, ctx=ctx, **kwargs)
 
 
 def _add_weights_arguments(parser) -> None:
@@ -142,12 +180,11 @@ def _add_weights_arguments(parser) -> None:
 
 
 def _lazy(target: str):
-    """A subcommand function imported only when that subcommand runs (keeps --help instant)."""
-    def run(args):
-        import importlib
+    """A subcommand function ``f(args, ctx)`` imported only when that subcommand runs (keeps --help instant)."""
+    def run(args, ctx: RunContext):
+        from .registry import load_target
 
-        module, attr = target.split(":")
-        return getattr(importlib.import_module(module), attr)(args)
+        return load_target(target, "command")(args, ctx)
 
     return run
 
@@ -170,8 +207,7 @@ def _add_render_commands(subparsers) -> None:
     p = subparsers.add_parser("show", help="write a PNG contact sheet of a rendered example "
                                            "(frames, masks, depth, ground-truth tracks)")
     p.add_argument("id", help="sample id, e.g. 00000")
-    p.add_argument("--split", choices=("train", "eval"), default="eval")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data directory (default: data)")
+    _add_data(p)
     p.add_argument("--out", type=Path, help="output PNG (default: <split>_<id>_contact_sheet.png)")
     p.set_defaults(func=_lazy("rigidbench.pipeline.render:cmd_show"))
 
@@ -186,15 +222,13 @@ def _add_selection(p: argparse.ArgumentParser, split_default: str = "eval") -> N
     p.add_argument("--limit", type=int, help="only the first N selected examples")
 
 
-def layer_config_dirs(dirs) -> None:
-    """Make ``--config`` directories apply to every registry this process and its workers load (predictors,
-    evaluation and counterfactual re-renders load it deep inside) by appending them to
-    $RIGIDBENCH_CONFIG_PATH; raises ConfigError naming a directory that does not exist."""
-    from .config import config_dirs
-
-    env = [p for p in os.environ.get("RIGIDBENCH_CONFIG_PATH", "").split(os.pathsep) if p]
-    os.environ["RIGIDBENCH_CONFIG_PATH"] = os.pathsep.join(env + [str(Path(d).resolve()) for d in dirs])
-    config_dirs()
+def _add_data(p: argparse.ArgumentParser) -> None:
+    """--data and --split for a command that reads reference bundles (one convention for all of them)."""
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA,
+                   help="reference bundles: a split directory (data/eval) or a data root (data) with --split "
+                        "(default: data)")
+    p.add_argument("--split", choices=("train", "eval"),
+                   help="split under a data root (default: the only split present)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -204,6 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", action="append", default=[], metavar="DIR",
                         help="extra configuration directory layered over the packaged configs and "
                              "$RIGIDBENCH_CONFIG_PATH, for every stage of the command (repeatable)")
+    parser.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                        help="import MODULE first, so the metrics, predictors or perception backends it registers "
+                             "are available to the command (repeatable)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
@@ -221,35 +258,38 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render_commands(sub)
 
     p = sub.add_parser("inputs", help="write inputs.jsonl: first frame, prompt and negative prompt per example")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory (default data/eval)")
-    p.add_argument("--out", type=Path, help="output file (default DATA/inputs.jsonl)")
+    _add_data(p)
+    p.add_argument("--out", type=Path, help="output file (default <split directory>/inputs.jsonl)")
     p.set_defaults(func=cmd_inputs)
 
-    p = sub.add_parser("predict", help="run a built-in predictor (failure mode) over the reference examples")
-    p.add_argument("name", help="image space: reference, static, slow, fast, delayed, gamma, camera-shake, "
-                                "camera-drift, background-wobble, identity-swap; re-simulated and re-rendered: "
-                                "gravity, restitution, friction, mass, depth-offset")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
+    p = sub.add_parser("predict", help="make one video per reference example with a registered predictor or "
+                                       "your own model (--list shows the registry)")
+    p.add_argument("name", nargs="?", help="a registered predictor (see --list) or package.module:Attr for your own")
+    p.add_argument("--list", action="store_true", help="list the registered predictors and exit")
+    _add_data(p)
     p.add_argument("--out", type=Path, help="output directory (default predictions/NAME)")
-    p.add_argument("--severity", type=float, default=1.0, help="0 = the reference, 1 = strong (default 1)")
+    p.add_argument("--severity", type=float, default=1.0,
+                   help="failure modes: 0 = the reference, 1 = strong (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="generation seed for video models (default 0)")
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("validate", help="fast preflight of a predictions directory before evaluation")
     p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
+    _add_data(p)
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("evaluate", help="score predictions against the reference with the ten measurements")
     p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files (predictions/MODEL)")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered split directory")
+    _add_data(p)
     p.add_argument("--perception", choices=("gt", "neural"), default="gt",
                    help="gt: exact world state written by built-in predictors; neural: SAM 2.1 masks, CoTracker3 "
                         "tracks, Video Depth Anything disparity (for any model's videos; weights: rigidbench weights)")
     p.add_argument("--depth-model", choices=("vda", "dav2"), default="vda",
                    help="neural disparity: Video Depth Anything Large (the paper's) or Depth Anything V2 per frame")
-    p.add_argument("--device", help="neural perception device, e.g. cuda or cpu (default: CUDA when available)")
+    p.add_argument("--device", dest="net_device",
+                   help="neural perception device, e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
     p.add_argument("--ids", nargs="+", metavar="ID")
@@ -264,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_lazy("rigidbench.report:cmd_report"))
     p = sub.add_parser("validate-metrics", help="controlled metric perturbations and one failure-mode response "
                        "curve per metric (figure + table)")
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA / "eval", help="rendered reference bundles")
+    _add_data(p)
     p.add_argument("--out", type=Path, default=Path("validation"), help="output directory (default validation/)")
     p.add_argument("--examples", type=int, default=10, help="reference examples to perturb (default 10)")
     p.add_argument("--severities", type=int, default=6, help="levels per sweep, >= 2")
@@ -298,13 +338,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    from .config import ConfigError
-
     try:
-        if args.config:
-            layer_config_dirs(args.config)
-        return int(args.func(args) or 0)
-    except (UserError, ConfigError) as exc:
+        ctx = build_context(args)
+        load_plugins(args.plugin)
+        return int(args.func(args, ctx) or 0)
+    except RigidBenchError as exc:
         print(f"rigidbench {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -2,8 +2,8 @@
 
 Every file is validated when it is loaded and cross-referenced against the others, so a typo
 fails early with a message naming the file, the field and the values that would be accepted.
-Extra directories (``RIGIDBENCH_CONFIG_PATH``, ``os.pathsep``-separated, or ``extra_dirs``)
-are layered over the packaged ``configs/``: a file with the same ``id`` replaces the packaged
+Extra directories (``extra_dirs``; the command line builds them from ``--config`` and
+``RIGIDBENCH_CONFIG_PATH``, ``os.pathsep``-separated) are layered over the packaged ``configs/``: a file with the same ``id`` replaces the packaged
 one, a new ``id`` adds an object, scene, task or material.
 """
 
@@ -18,6 +18,8 @@ from typing import Any, Iterable, Mapping
 
 import yaml
 
+from .errors import ConfigError
+
 PACKAGE_CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 OBJECT_PARTITIONS = ("train", "held_out")
@@ -26,10 +28,6 @@ SHAPES = ("ellipsoid", "cylinder", "box", "banana")
 STEP_OPS = ("drop", "on_support", "ramp", "on_ramp", "line", "cluster")
 DIRECTIONS = ("+x", "-x")
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
-
-
-class ConfigError(ValueError):
-    """A configuration file is malformed or refers to something that does not exist."""
 
 
 def _fail(path: Path | str, field_name: str, message: str) -> ConfigError:
@@ -564,10 +562,8 @@ def parse_splits(path: Path, data: Any, task_ids: Iterable[str]) -> SplitConfig:
 
 
 def config_dirs(extra_dirs: Iterable[str | Path] = ()) -> list[Path]:
-    dirs = [PACKAGE_CONFIG_DIR]
-    env = os.environ.get("RIGIDBENCH_CONFIG_PATH", "")
-    dirs += [Path(p) for p in env.split(os.pathsep) if p]
-    dirs += [Path(p) for p in extra_dirs]
+    """The packaged config directory followed by ``extra_dirs`` (later directories override earlier ones)."""
+    dirs = [PACKAGE_CONFIG_DIR] + [Path(p) for p in extra_dirs]
     for d in dirs[1:]:
         if not d.is_dir():
             raise ConfigError(f"{d}: configuration directory does not exist (from RIGIDBENCH_CONFIG_PATH or --config)")
@@ -625,9 +621,12 @@ def load_registry(extra_dirs: Iterable[str | Path] = ()) -> Registry:
 
 @functools.lru_cache(maxsize=4)
 def _cached(key: tuple[str, ...]) -> Registry:
-    return load_registry(key[1:])
+    return load_registry(key)
 
 
 def registry(extra_dirs: Iterable[str | Path] = ()) -> Registry:
-    """The registry for the packaged configs plus any extra directories (cached per process)."""
-    return _cached((os.environ.get("RIGIDBENCH_CONFIG_PATH", ""), *map(str, extra_dirs)))
+    """The registry for the packaged configs plus any extra directories (cached per process).
+
+    The environment is not consulted here: the command line turns ``$RIGIDBENCH_CONFIG_PATH`` and
+    ``--config`` into the directories of its ``RunContext``, which passes them down."""
+    return _cached(tuple(str(Path(d).resolve()) for d in extra_dirs))

@@ -2,13 +2,13 @@
 
 Scoring keeps the reference timestamps t_k = k / 24 (paper, appendix B.1). A generated clip is
 decoded with its real presentation timestamps (pts * time_base, relative to the first frame, so
-variable frame rate is handled), resized with Lanczos to the reference resolution, and sampled at
+variable frame rate is handled), resized with antialiased Lanczos (PIL) to the reference resolution, and sampled at
 t_k: RGB, track coordinates and disparity linearly in physical time between the two neighbouring
 generated frames; masks and visibility flags by nearest neighbour. Reference timestamps after the
 last generated frame are discarded, so each comparison stops at the shorter sequence; a longer
 clip is cut at the reference length.
 
-PyAV (``av``) and OpenCV (``cv2``) are imported inside the functions that need them.
+PyAV (``av``), Pillow (``PIL``) and OpenCV (``cv2``) are imported inside the functions that need them.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from .errors import VideoError
+
 log = logging.getLogger(__name__)
 
 #: Reference clip: 49 frames at 24 fps, 1280x704 (paper, section 3 and appendix B.1).
@@ -38,15 +40,6 @@ TIME_TOLERANCE_S = 1e-6
 VIDEO_EXTENSIONS = (".mp4", ".webm", ".mov", ".mkv", ".avi", ".gif")
 
 _FORMAT_BY_SUFFIX = {".mp4": "mp4", ".mov": "mov", ".mkv": "matroska", ".webm": "webm"}
-
-
-class VideoError(Exception):
-    """A video file that is missing, undecodable or empty; names the file and the reason."""
-
-    def __init__(self, path: str | Path, reason: str):
-        self.path = Path(path)
-        self.reason = reason
-        super().__init__(f"{path}: {reason}")
 
 
 @dataclass
@@ -150,6 +143,13 @@ def aligned_length(gen_times_s: np.ndarray, ref_times_s: np.ndarray, tol_s: floa
     return int(len(inside)) if inside.all() else int(np.argmin(inside))
 
 
+def frames_until(times_s: np.ndarray, until_s: float, tol_s: float = TIME_TOLERANCE_S) -> int:
+    """times_s (T,) increasing seconds. Returns how many leading frames a comparison up to ``until_s``
+    needs: every frame before it and the first at or after it (what ``read_video(until_s=...)`` decodes)."""
+    times_s = np.asarray(times_s, dtype=np.float64)
+    return int(min(np.searchsorted(times_s, until_s - tol_s, side="left") + 1, len(times_s)))
+
+
 def _bracket(src_times_s: np.ndarray, dst_times_s: np.ndarray,
              tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """src (T,) increasing, dst (K,) seconds. Returns i0, i1 (K,) int and w (K,) float64 in [0, 1]."""
@@ -222,18 +222,41 @@ def _blend_uint8(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def resize_frames(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """frames (T,H,W,C) or (H,W,C) uint8; size (W,H). Returns the Lanczos-resized frames, uint8 (input if same size)."""
-    import cv2
+def _resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """image (H,W,C); returns (height,width,C) of the same dtype, PIL Lanczos (antialiased when shrinking).
+    uint8 with 1, 3 or 4 channels is resized as one PIL image; anything else channel by channel in
+    PIL's 32-bit float mode (rounded back for integer dtypes)."""
+    from PIL import Image
 
+    lanczos = Image.Resampling.LANCZOS
+    if image.dtype == np.uint8 and image.shape[-1] in (1, 3, 4):
+        pil = Image.fromarray(image[..., 0] if image.shape[-1] == 1 else np.ascontiguousarray(image))
+        return np.asarray(pil.resize((width, height), lanczos)).reshape(height, width, -1)
+    out = np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c], dtype=np.float32))
+                               .resize((width, height), lanczos)) for c in range(image.shape[-1])], axis=-1)
+    if np.issubdtype(image.dtype, np.integer):
+        info = np.iinfo(image.dtype)
+        out = np.rint(out).clip(info.min, info.max)
+    return out.astype(image.dtype)
+
+
+def resize_frames(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """frames (T,H,W,C) or (H,W,C) uint8; size (W,H). Returns the Lanczos-resized frames, uint8 (input if same size).
+
+    Resized as the published evaluation resized generated frames (RigidBench release,
+    ``eval/prepare.py``, ``extract_frames``): PIL ``Image.resize(size, LANCZOS)`` per RGB frame.
+    PIL widens the Lanczos-3 kernel by the shrink factor, so shrinking (e.g. 1920x1080 outputs to
+    1280x704) is antialiased; OpenCV's INTER_LANCZOS4 keeps a fixed 8-tap kernel and aliases
+    there. Enlarging is ordinary Lanczos-3 interpolation.
+    """
     width, height = int(size[0]), int(size[1])
     if frames.shape[-3:-1] == (height, width):
         return frames
     if frames.ndim == 3:
-        return cv2.resize(frames, (width, height), interpolation=cv2.INTER_LANCZOS4)
+        return _resize_image(frames, width, height)
     out = np.empty((frames.shape[0], height, width) + frames.shape[3:], dtype=frames.dtype)
     for t in range(frames.shape[0]):
-        out[t] = cv2.resize(frames[t], (width, height), interpolation=cv2.INTER_LANCZOS4).reshape(out.shape[1:])
+        out[t] = _resize_image(frames[t], width, height).reshape(out.shape[1:])
     return out
 
 
@@ -272,10 +295,10 @@ def align_frames(frames: Iterable[tuple[float, np.ndarray]], ref_times_s: np.nda
     """frames: (time s, (H,W,3) uint8) in increasing time; ref_times_s (K,) increasing. Returns (K',H,W,3) uint8.
 
     Streaming form of the alignment: only the two neighbouring generated frames are held, each
-    resized with Lanczos (OpenCV on uint8, as the paper's pipeline does), then blended linearly
-    in physical time in float32 and rounded half-to-even back to uint8. A reference time that
-    coincides with a generated frame (within TIME_TOLERANCE_S) returns that resized frame
-    unchanged. Reference times after the last generated frame are dropped (K' <= K), so a
+    resized with antialiased Lanczos (``resize_frames``: PIL, as the paper's pipeline does), then
+    blended linearly in physical time in float32 and rounded half-to-even back to uint8. A
+    reference time that coincides with a generated frame (within TIME_TOLERANCE_S) returns that
+    resized frame unchanged. Reference times after the last generated frame are dropped (K' <= K), so a
     longer clip is cut at the reference length and a shorter one stops at its last frame.
     """
     ref = np.asarray(ref_times_s, dtype=np.float64)
@@ -443,21 +466,32 @@ def read_video(path: str | Path, *, fps: float | None = None, until_s: float | N
     """path: a video file or a directory of PNG frames (needs fps). Returns Video, RGB uint8, real timestamps.
 
     Timestamps come from iter_video. ``fps`` overrides them with k / fps (required for PNG
-    directories). With ``until_s`` decoding stops at the first frame at or after that time.
+    directories). ``until_s`` (seconds from the first frame) decodes only what a comparison up to
+    that time needs: every frame with a timestamp before it, and the first frame at or after it
+    (within TIME_TOLERANCE_S), which is the frame at ``until_s`` itself or the later neighbour that
+    linear and nearest alignment need at the end; nothing after that frame is decoded. It applies
+    to the returned timestamps (k / fps when ``fps`` is given).
     """
     path = Path(path)
     if path.is_dir():
         if fps is None:
             raise VideoError(path, "a directory of PNG frames needs an explicit fps")
-        return _read_png_dir(path, fps)
+        return _read_png_dir(path, fps, until_s)
     fps_nominal, hint = _stream_header(path)
-    if fps_nominal and until_s is not None:
-        hint = min(hint or math.inf, int(math.ceil(until_s * fps_nominal)) + 2)
+    rate = fps if fps is not None else fps_nominal
+    if rate and until_s is not None:
+        hint = min(hint or math.inf, max(int(math.ceil(until_s * rate)), 0) + 2)
     buffer = _FrameBuffer(hint or 64)
     times: list[float] = []
-    for t, frame in iter_video(path, until_s=until_s):
-        buffer.append(frame)
-        times.append(t)
+    frames = iter_video(path, until_s=until_s if fps is None else None)
+    try:
+        for t, frame in frames:
+            buffer.append(frame)
+            times.append(t)
+            if fps is not None and until_s is not None and _reached(len(times) - 1, fps, until_s):
+                break
+    finally:
+        frames.close()
     times_s = np.arange(len(times)) / fps if fps is not None else np.asarray(times, dtype=np.float64)
     return Video(frames=buffer.result(), times_s=times_s, fps_nominal=fps if fps is not None else fps_nominal)
 
@@ -472,13 +506,22 @@ def _stream_header(path: Path) -> tuple[float | None, int]:
         container.close()
 
 
-def _read_png_dir(path: Path, fps: float) -> Video:
-    """path: a directory of PNG frames, sorted by name; fps in Hz. Returns Video with times k / fps."""
+def _reached(index: int, fps: float, until_s: float) -> bool:
+    """Whether frame ``index`` at index / fps is the first one a read up to ``until_s`` must end with."""
+    return index / float(fps) >= until_s - TIME_TOLERANCE_S
+
+
+def _read_png_dir(path: Path, fps: float, until_s: float | None = None) -> Video:
+    """path: a directory of PNG frames, sorted by name; fps in Hz. Returns Video with times k / fps
+    (with ``until_s``: up to the first frame at or after it, as read_video)."""
     import cv2
 
     files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".png")
     if not files:
         raise VideoError(path, "directory holds no .png frames")
+    if until_s is not None:
+        last = next((k for k in range(len(files)) if _reached(k, fps, until_s)), len(files) - 1)
+        files = files[: last + 1]
     buffer = _FrameBuffer(len(files))
     for file in files:
         bgr = cv2.imread(str(file), cv2.IMREAD_COLOR)

@@ -163,3 +163,22 @@ def hand_specs(reg: Registry | None = None) -> dict[str, SceneSpec]:
 @pytest.fixture(scope="session")
 def reg() -> Registry:
     return load_registry()
+
+
+def ate3d_floor(sample) -> float:
+    """ATE-3D of a perfect prediction, computed independently of the evaluator: a perfect reconstruction
+    is the geometric median of an actor's visible surface points, and ATE-3D compares it with the body
+    origin p_{a,t}. Returns RMS over actor-frames with a visible point of |median - p| / mean displacement."""
+    import numpy as np
+
+    from rigidbench.evaluation.scoring import tracked_points_world
+    from rigidbench.metrics.common import geometric_median
+
+    points = tracked_points_world(sample, sample.n_frames)  # (P,T,3)
+    visible = sample.tracks["visibility"]
+    actor = sample.track_active_index
+    positions = sample.trajectory.positions_m[sample.active_indices, :sample.n_frames]
+    errors = [np.sum((geometric_median(points[(actor == a) & visible[:, t], t]) - positions[a, t]) ** 2)
+              for a in range(len(positions)) for t in range(sample.n_frames) if ((actor == a) & visible[:, t]).any()]
+    displacement = np.linalg.norm(positions[:, -1] - positions[:, 0], axis=-1)
+    return float(np.sqrt(np.mean(errors)) / displacement[displacement > 0.01].mean())

@@ -4,9 +4,12 @@ import json
 
 import numpy as np
 import pytest
-from conftest import render_eval_examples, requires_bpy
+from conftest import ate3d_floor, render_eval_examples, requires_bpy
 
-from rigidbench.evaluate import FeatureNets, evaluate
+from rigidbench.evaluation import evaluate
+from rigidbench.groundtruth.bundle import Sample
+from rigidbench.perception.features import FeatureNets
+from rigidbench.predictors import PREDICTORS, PredictContext
 from rigidbench.pipeline.predict import predict
 
 pytestmark = [pytest.mark.integration, requires_bpy]
@@ -19,8 +22,8 @@ def data_dir(tmp_path_factory):
 
 def _run(data_dir, tmp_path, name, severity=1.0):
     preds = tmp_path / "predictions" / name
-    written, failed = predict(name, data_dir, preds, severity, progress=False)
-    assert not failed and len(written) == 2
+    run = predict(name, data_dir, preds, PredictContext(severity=severity), progress=False)
+    assert not run.failed and len(run.written) == 2
     return evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), progress=False)
 
 
@@ -31,8 +34,12 @@ def test_reference_against_itself_is_perfect(data_dir, tmp_path):
     assert overall["iou"]["mean"] == 1.0 and overall["ssim"]["mean"] == 1.0
     for name in ("centroid_l2", "chamfer", "ate", "si_mse", "bgdrift"):
         assert overall[name]["mean"] == pytest.approx(0.0, abs=1e-9), name
-    # Not exactly 0: depth is sampled bilinearly between pixels of a 256x144 Z pass near object edges.
-    assert overall["ate3d"]["mean"] == pytest.approx(0.0, abs=2e-3)
+    # ATE-3D's floor: the reconstruction of a perfect clip is the median of the visible surface points, the
+    # target the body origin (paper); the difference is a small positive offset, computed independently here
+    # (up to bilinear depth sampling between pixels of the Z pass near object edges).
+    floors = [ate3d_floor(Sample(data_dir / i)) for i in ("00015", "00020")]
+    assert min(floors) > 0.01
+    assert overall["ate3d"]["mean"] == pytest.approx(np.mean(floors), abs=2e-3)
     assert overall["ate3d"]["finite"] == 2
     # Measurements without their networks are reported as skipped, and the run is not official.
     assert summary.results["official"] is False and "lpips" in summary.results["skipped_metrics"]
@@ -50,7 +57,8 @@ def test_unchanged_inputs_are_reused_and_changed_ones_recomputed(data_dir, tmp_p
                       progress=False)
     assert second.reused == ["00015", "00020"] and not second.evaluated
     # Replace one prediction with a different failure mode: only that example is recomputed.
-    predict("static", data_dir, tmp_path / "predictions" / "reference", 1.0, ids=["00020"], progress=False)
+    predict("static", data_dir, tmp_path / "predictions" / "reference", PredictContext(severity=1.0), ids=["00020"],
+            progress=False)
     third = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(),
                      progress=False)
     assert third.reused == ["00015"] and third.evaluated == ["00020"]
@@ -58,7 +66,7 @@ def test_unchanged_inputs_are_reused_and_changed_ones_recomputed(data_dir, tmp_p
 
 def test_bad_example_is_reported_and_others_continue(data_dir, tmp_path):
     preds = tmp_path / "predictions" / "broken"
-    predict("reference", data_dir, preds, 0.0, progress=False)
+    predict("reference", data_dir, preds, PredictContext(severity=0.0), progress=False)
     (preds / "00015.mp4").write_bytes(b"not a video")
     summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), progress=False)
     assert list(summary.failed) == ["00015"] and summary.evaluated == ["00020"]
@@ -73,21 +81,22 @@ def test_failure_modes_move_metrics_in_the_expected_direction(data_dir, tmp_path
     # Coherent camera shake is absorbed by the similarity transform; local wobble is not.
     assert wobble["bgdrift"]["mean"] > 3 * max(shake["bgdrift"]["mean"], 1e-4)
     gamma = _run(data_dir, tmp_path, "gamma").results["overall"]
-    assert gamma["ssim"]["mean"] < 0.99 and gamma["ate3d"]["mean"] == pytest.approx(0.0, abs=5e-3)
+    floor = np.mean([ate3d_floor(Sample(data_dir / i)) for i in ("00015", "00020")])
+    assert gamma["ssim"]["mean"] < 0.99 and gamma["ate3d"]["mean"] == pytest.approx(floor, abs=2e-3)
 
 
 def test_predict_resumes_and_rewrites_when_the_severity_changes(data_dir, tmp_path):
     preds = tmp_path / "predictions" / "slow"
-    predict("slow", data_dir, preds, 0.5, progress=False)
+    predict("slow", data_dir, preds, PredictContext(severity=0.5), progress=False)
     stamps = {p.name: p.stat().st_mtime_ns for p in preds.glob("*.mp4")}
     (preds / "00020.mp4").unlink()  # as if interrupted before the second video was moved into place
-    written, failed = predict("slow", data_dir, preds, 0.5, progress=False)
-    assert written == ["00015", "00020"] and not failed
+    run = predict("slow", data_dir, preds, PredictContext(severity=0.5), progress=False)
+    assert run.written == ["00015", "00020"] and run.skipped == ["00015"] and not run.failed
     assert (preds / "00015.mp4").stat().st_mtime_ns == stamps["00015.mp4"]  # kept, not redone
     assert not list(preds.glob(".*partial*"))
-    predict("slow", data_dir, preds, 1.0, progress=False)
+    predict("slow", data_dir, preds, PredictContext(severity=1.0), progress=False)
     assert (preds / "00015.mp4").stat().st_mtime_ns != stamps["00015.mp4"]  # new severity: written again
-    assert json.loads((preds / ".predictor.json").read_text()) == {"predictor": "slow", "severity": 1.0}
+    assert json.loads((preds / ".predictor.json").read_text()) == {"predictor": "slow", "target": "rigidbench.predictors.image_space:slow", "severity": 1.0}
 
 
 IMAGE_SPACE = ("static", "slow", "fast", "delayed", "gamma", "camera-shake", "camera-drift", "background-wobble")
@@ -96,11 +105,10 @@ IMAGE_SPACE = ("static", "slow", "fast", "delayed", "gamma", "camera-shake", "ca
 @pytest.mark.parametrize("name", IMAGE_SPACE)
 def test_image_space_mode_at_zero_severity_is_the_reference(data_dir, name):
     from rigidbench.groundtruth.bundle import Sample
-    from rigidbench.models.failure_modes import FAILURE_MODES
     from rigidbench.perception.gt import reference_state
 
     sample = Sample(data_dir / "00020")
-    pred = FAILURE_MODES[name](sample, 0.0)
+    pred = PREDICTORS[name].create().predict(sample, PredictContext(severity=0.0))
     ref = reference_state(sample)
     assert np.array_equal(pred.frames, sample.frames)
     for field in ("masks", "depth_m", "tracks", "visibility"):
@@ -112,7 +120,7 @@ def _sweep(data_dir, tmp_path, name, severities=(0.25, 0.5, 1.0)):
     out = []
     for s in severities:
         preds = tmp_path / "predictions" / f"{name}-{s}"
-        predict(name, data_dir, preds, s, progress=False)
+        predict(name, data_dir, preds, PredictContext(severity=s), progress=False)
         out.append(evaluate(preds, data_dir, tmp_path / "runs" / f"{name}-{s}", nets=FeatureNets(),
                             progress=False).results["overall"])
     return out

@@ -15,7 +15,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
 import tiny_perception  # noqa: E402
 
-from rigidbench.evaluate import METRICS, FeatureNets, evaluate  # noqa: E402
+from rigidbench.evaluation import evaluate  # noqa: E402
+from rigidbench.metrics import METRICS  # noqa: E402
+from rigidbench.perception.features import FeatureNets  # noqa: E402
+from rigidbench.predictors import PredictContext  # noqa: E402
 from rigidbench.pipeline.predict import predict  # noqa: E402
 
 pytestmark = [pytest.mark.integration, requires_bpy]
@@ -40,8 +43,8 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
     from rigidbench.perception.features import load_identity_features
 
     preds = tmp_path / "predictions" / "reference"
-    written, failed = predict("reference", data_dir, preds, 1.0, progress=False)
-    assert not failed and len(written) == 1
+    run = predict("reference", data_dir, preds, PredictContext(severity=1.0), progress=False)
+    assert not run.failed and len(run.written) == 1
     models = tiny_perception.tiny_models()
     calls = count_forward_calls(models)
     options = {"models": models, "depth_input_size": 56, "device": "cpu"}
@@ -52,7 +55,7 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
                        progress=False)
     assert not summary.failed and summary.evaluated == ["00015"]
     # SAM 2: the prompt frame, then 12 propagation steps (the `test` preset has 12 frames).
-    assert calls["sam2"] == 1 + 12 and calls["cotracker"] == 1 and calls["depth"] >= 1
+    assert calls["sam2"] == 1 + 12 and calls["cotracker"] == 2 and calls["depth"] >= 1  # actors, background
 
     record = json.loads((out / "examples" / "00015.json").read_text())
     assert record["perception"] == "neural" and set(record["metrics"]) == set(METRICS) and not record["skipped"]
@@ -64,7 +67,7 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
     run = json.loads((out / "run.json").read_text())
     assert run["perception"]["backend"] == "neural" and run["perception"]["settings"]["depth_model"] == "vda"
     cached = sorted(p.name.split("-")[1] for p in (out / "cache" / "neural").glob("00015-*.npz"))
-    assert cached == ["cotracker", "depth", "sam2"]
+    assert cached == ["background", "cotracker", "depth", "sam2"]
 
     # Unchanged inputs: the example is reused. Changed feature nets: rescored, but no model runs again.
     before = dict(calls)

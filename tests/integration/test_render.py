@@ -266,13 +266,13 @@ def test_check_bundle_reports_damage(rendered, tmp_path):
 def test_show_writes_contact_sheet(rendered, tmp_path):
     from PIL import Image
 
-    from rigidbench.cli import build_parser
+    from rigidbench.cli import build_context, build_parser
 
     path, _ = rendered["ramp_collision"]
     parser = build_parser()
     out = tmp_path / "sheet.png"
     args = parser.parse_args(["show", path.name, "--split", "eval", "--data", str(path.parents[1]), "--out", str(out)])
-    assert args.func(args) == 0
+    assert args.func(args, build_context(args)) == 0
     with Image.open(out) as im:
         assert im.size[0] > 800 and im.size[1] > 400
 
@@ -351,12 +351,13 @@ def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows
 
 
 def test_render_command_rejects_unknown_ids(tmp_path):
-    from rigidbench.cli import UserError, build_parser
+    from rigidbench.cli import build_context, build_parser
+    from rigidbench.errors import UserError
 
     parser = build_parser()
     args = parser.parse_args(["render", "--split", "eval", "--ids", "99999", "--data", str(tmp_path)])
     with pytest.raises(UserError, match="99999"):
-        args.func(args)
+        args.func(args, build_context(args))
 
 
 def test_failing_example_is_reported_and_the_others_continue(reg, task_rows, tmp_path):

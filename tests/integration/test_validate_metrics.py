@@ -6,7 +6,7 @@ import json
 import pytest
 from conftest import render_eval_examples, requires_bpy
 
-from rigidbench.evaluate import FeatureNets
+from rigidbench.perception.features import FeatureNets
 from rigidbench.validation import validate_metrics
 
 pytestmark = [pytest.mark.integration, requires_bpy]

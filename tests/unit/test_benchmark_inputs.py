@@ -39,6 +39,6 @@ def test_inputs_jsonl_via_cli(tmp_path):
 
 def test_missing_data_dir_is_a_clear_error(tmp_path, capsys):
     assert main(["inputs", "--data", str(tmp_path / "nowhere")]) == 2
-    assert "no rendered examples here" in capsys.readouterr().err
+    assert "data directory does not exist" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError):
         rigidbench.Benchmark.load(tmp_path / "nowhere")

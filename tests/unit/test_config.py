@@ -95,8 +95,7 @@ def test_extra_config_dir_adds_an_object(tmp_path, monkeypatch):
     extra.mkdir(parents=True)
     src = (PACKAGE_CONFIG_DIR / "objects" / "apple.yaml").read_text()
     (extra / "green_apple.yaml").write_text(src.replace("id: apple", "id: green_apple").replace("name: Apple", "name: Green apple"))
-    monkeypatch.setenv("RIGIDBENCH_CONFIG_PATH", str(tmp_path / "extra"))
-    reg = load_registry()
+    reg = load_registry([tmp_path / "extra"])
     assert reg.object("green_apple").name == "Green apple" and len(reg.objects) == 25
 
 
@@ -132,12 +131,12 @@ def test_preset_transport_keys_default_to_the_paper_and_reject_unknown_values(co
     assert str(path) in msg and "presets.quick.light_transport" in msg and "'quick'" in msg and "fast" in msg
 
 
-def test_cli_config_reaches_registries_loaded_deep_inside_commands(tmp_path, monkeypatch, capsys):
-    # predict, evaluate and counterfactual re-renders call registry() without arguments; --config must reach them.
-    from rigidbench.cli import main
+def test_cli_config_and_environment_become_the_run_context(tmp_path, monkeypatch, capsys):
+    # The CLI alone reads $RIGIDBENCH_CONFIG_PATH and --config; stages get the directories in the run context.
+    from rigidbench.cli import build_context, build_parser, main
     from rigidbench.config import registry
 
-    monkeypatch.setenv("RIGIDBENCH_CONFIG_PATH", "")  # (delenv of an unset variable would not undo main's export)
+    monkeypatch.delenv("RIGIDBENCH_CONFIG_PATH", raising=False)
     extra = tmp_path / "cfg"
     extra.mkdir()
     text = (PACKAGE_CONFIG_DIR / "render.yaml").read_text()
@@ -148,6 +147,16 @@ def test_cli_config_reaches_registries_loaded_deep_inside_commands(tmp_path, mon
     with pytest.raises(ConfigError, match="unknown render preset 'quick'"):
         registry().preset("quick")
     assert main(["--config", str(extra), "manifest", "--split", "eval", "--out", str(tmp_path / "m.jsonl")]) == 0
-    assert registry().preset("quick").samples == 3
+    with pytest.raises(ConfigError, match="unknown render preset 'quick'"):
+        registry().preset("quick")  # main changed no process-wide state
+    ctx = build_context(build_parser().parse_args(["--config", str(extra), "manifest", "--split", "eval"]))
+    assert ctx.config_dirs == (extra.resolve(),) and ctx.registry.preset("quick").samples == 3
+    env_dir = tmp_path / "env"
+    env_dir.mkdir()
+    monkeypatch.setenv("RIGIDBENCH_CONFIG_PATH", str(env_dir))
+    ctx = build_context(build_parser().parse_args(["--config", str(extra), "manifest", "--split", "eval"]))
+    assert ctx.config_dirs == (env_dir.resolve(), extra.resolve())  # the environment first, then --config
+    assert ctx.job()["config_dirs"] == [str(env_dir.resolve()), str(extra.resolve())]  # what render workers get
+    monkeypatch.delenv("RIGIDBENCH_CONFIG_PATH")
     assert main(["--config", str(tmp_path / "missing"), "manifest", "--split", "eval"]) == 2
     assert str(tmp_path / "missing") in capsys.readouterr().err

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from rigidbench.config import registry
-from rigidbench.models.counterfactuals import (depth_offsets, friction_change, gravity_change, mass_change,
+from rigidbench.predictors.counterfactuals import (depth_offsets, friction_change, gravity_change, mass_change,
                                                restitution_change)
-from rigidbench.models.failure_modes import FAILURE_MODES
-from rigidbench.models.identity_swap import DONORS, blend_inside_masks, donor_for
+from rigidbench.predictors import PREDICTORS, FailureMode, Kind
+from rigidbench.predictors.identity_swap import DONORS, blend_inside_masks, donor_for
 from rigidbench.spec.types import Body, BodyPhysics, SceneSpec, SimSpec, SupportSpec
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
@@ -122,4 +122,6 @@ def test_blend_changes_only_actor_pixels_after_frame_zero():
 
 def test_new_modes_are_registered():
     for name in ("identity-swap", "gravity", "restitution", "friction", "mass", "depth-offset"):
-        assert callable(FAILURE_MODES[name])
+        info = PREDICTORS[name]
+        assert info.kind == Kind.FAILURE_MODE and info.needs_blender and info.writes_state
+        assert isinstance(info.create(), FailureMode)

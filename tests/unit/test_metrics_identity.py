@@ -14,10 +14,11 @@ H, W = 160, 320
 
 
 def test_patch_origin_and_validity_by_hand():
-    # centre 32.0 -> columns 0..63; centre 0.5 -> columns -31..32 (33 inside)
-    np.testing.assert_array_equal(patch_origins(np.array([[32.0, 32.0], [0.5, 100.5]])), [[0, 0], [-31, 69]])
+    # centre 32.0 -> columns 0..63; centre 0.5 rounds half to even to 0 -> columns -32..31 (32 inside);
+    # centre 100.5 rounds to 100 -> rows 68..131
+    np.testing.assert_array_equal(patch_origins(np.array([[32.0, 32.0], [0.5, 100.5]])), [[0, 0], [-32, 68]])
     centres = np.array([
-        [0.5, 80.0],     # 33 columns inside: kept
+        [0.5, 80.0],     # 32 columns inside: kept
         [-0.5, 80.0],    # exactly 32 columns inside: kept
         [-1.0, 80.0],    # 31 columns inside: dropped
         [160.0, -1.0],   # 31 rows inside: dropped
@@ -27,13 +28,13 @@ def test_patch_origin_and_validity_by_hand():
     np.testing.assert_array_equal(patch_is_valid(centres, H, W), [True, True, False, False, False, False])
 
 
-def test_extract_patches_copies_pixels_and_zero_fills_outside():
+def test_extract_patches_copies_the_part_inside_the_image():
     frame = (np.arange(H * W * 3) % 251 + 1).reshape(H, W, 3).astype(np.uint8)  # no zeros inside
     patches = extract_patches(frame, np.array([[32.0, 32.0], [0.5, 40.0]]))
-    assert patches.shape == (2, 64, 64, 3)
+    assert [p.shape for p in patches] == [(64, 64, 3), (64, 32, 3)]
     np.testing.assert_array_equal(patches[0], frame[:64, :64])
-    np.testing.assert_array_equal(patches[1][:, :31], 0)  # columns -31..-1 lie outside
-    np.testing.assert_array_equal(patches[1][:, 31:], frame[8:72, :33])
+    # centre 0.5 -> 0: columns -32..31 requested, -32..-1 lie outside and are cut off (no padding)
+    np.testing.assert_array_equal(patches[1], frame[8:72, :32])
 
 
 def mean_colour(x):

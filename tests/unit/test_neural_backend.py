@@ -47,16 +47,18 @@ def perceived(models, clip, tmp_path_factory):
 def test_outputs_have_the_perception_shapes_dtypes_and_ranges(perceived, clip):
     p, backend, _ = perceived
     sample, video = clip
-    assert backend.runs == {"sam2": 1, "cotracker": 1, "depth": 1}
+    assert backend.runs == {"sam2": 1, "cotracker": 1, "background": 1, "depth": 1}
     np.testing.assert_array_equal(p.times_s, video.times_s)
+    np.testing.assert_array_equal(p.bg_times_s, np.arange(5) / 24.0)  # the reference times
     assert p.masks.shape == (5, 2, 48, 64) and p.masks.dtype == bool
     assert p.tracks.shape == (40, 5, 2) and p.tracks.dtype == np.float32
     assert p.visibility.shape == (40, 5) and p.visibility.dtype == bool
+    assert p.confidence.shape == (40, 5) and p.confidence.dtype == np.float32
     np.testing.assert_array_equal(p.track_actor, sample.track_active_index)
     assert p.disparity.shape == (5, 48, 64) and p.disparity.dtype == np.float32
     assert np.isfinite(p.disparity).all() and (p.disparity >= 0).all()
     assert p.bg_tracks.shape[1:] == (5, 2) and p.bg_confidence.shape == p.bg_tracks.shape[:2]
-    assert p.bg_tracks.shape[0] > 0 and ((p.bg_confidence >= 0) & (p.bg_confidence <= 1)).all()
+    assert p.bg_tracks.shape[0] > 0 and np.isin(p.bg_confidence, (0.0, 1.0)).all()  # 0/1 visibility weights
 
 
 def test_masks_are_sam2_propagated_from_the_reference_frame0_masks(perceived, clip, models):
@@ -73,13 +75,16 @@ def test_tracks_start_at_the_ground_truth_points_and_keep_the_generated_visibili
     sample, video = clip
     corners = detect_background_corners(video.frames[0], p.masks[0])
     np.testing.assert_allclose(p.bg_tracks[:, 0], corners, atol=1e-4)
-    points = np.concatenate([sample.tracks["query_pixels"].astype(np.float32), corners])
-    tracks, visible, confidence = track_points(models["cotracker"], video.frames, points)
-    np.testing.assert_array_equal(p.tracks, tracks[:40])
+    # Two calls: the actor points alone, the corners alone (here the clip is at the reference times).
+    tracks, visible, confidence = track_points(models["cotracker"], video.frames, sample.tracks["query_pixels"])
+    np.testing.assert_array_equal(p.tracks, tracks)
     np.testing.assert_allclose(p.tracks[:, 0], sample.tracks["query_pixels"], atol=1e-4)
     # The backend stores the generated visibility alone; the metrics AND it with the reference's once.
-    np.testing.assert_array_equal(p.visibility, visible[:40])
-    np.testing.assert_array_equal(p.bg_confidence, confidence[40:])
+    np.testing.assert_array_equal(p.visibility, visible)
+    np.testing.assert_array_equal(p.confidence, confidence)
+    bg_tracks, bg_visible, _ = track_points(models["cotracker"], video.frames, corners.astype(np.float32))
+    np.testing.assert_array_equal(p.bg_tracks, bg_tracks)
+    np.testing.assert_array_equal(p.bg_confidence, bg_visible.astype(np.float32))
     ref_tracks, ref_vis = sample.tracks["tracks"], sample.tracks["visibility"]
     assert (p.visibility & ~ref_vis).any() or (~p.visibility & ref_vis).any()  # the two flags do differ
     joint = ref_vis & p.visibility
@@ -90,7 +95,7 @@ def test_tracks_start_at_the_ground_truth_points_and_keep_the_generated_visibili
 def test_a_second_run_does_no_model_work(perceived, clip):
     p, _, cache = perceived
     sample, video = clip
-    assert sorted(f.name.split("-")[1] for f in cache.glob("*.npz")) == ["cotracker", "depth", "sam2"]
+    assert sorted(f.name.split("-")[1] for f in cache.glob("*.npz")) == ["background", "cotracker", "depth", "sam2"]
 
     def must_not_load(role):
         raise AssertionError(f"{role} was loaded although its output is cached")
@@ -99,8 +104,9 @@ def test_a_second_run_does_no_model_work(perceived, clip):
                           models=tiny_perception.tiny_models())
     again._load = must_not_load
     q = again.perceive(sample, video, Path("synthetic.mp4"))
-    assert again.runs == {"sam2": 0, "cotracker": 0, "depth": 0}
-    for name in ("masks", "tracks", "visibility", "disparity", "bg_tracks", "bg_confidence"):
+    assert again.runs == {"sam2": 0, "cotracker": 0, "background": 0, "depth": 0}
+    for name in ("masks", "tracks", "visibility", "confidence", "disparity", "bg_times_s", "bg_tracks",
+                 "bg_confidence"):
         np.testing.assert_array_equal(getattr(q, name), getattr(p, name))
 
 
@@ -109,13 +115,13 @@ def test_changing_one_model_setting_reruns_only_that_model(perceived, clip, mode
     sample, video = clip
     other = NeuralBackend(models=models, cache_dir=cache, depth_input_size=DEPTH_INPUT + 14, device="cpu")
     other.perceive(sample, video, Path("synthetic.mp4"))
-    assert other.runs == {"sam2": 0, "cotracker": 0, "depth": 1}
+    assert other.runs == {"sam2": 0, "cotracker": 0, "background": 0, "depth": 1}
     assert other.version != NeuralBackend(depth_input_size=DEPTH_INPUT).version
     # A changed video invalidates everything; without a cache directory nothing is reused.
     shifted = Video(np.roll(video.frames, 3, axis=2), video.times_s)
     uncached = NeuralBackend(models=models, depth_input_size=DEPTH_INPUT, device="cpu")
     uncached.perceive(sample, shifted, Path("shifted.mp4"))
-    assert uncached.runs == {"sam2": 1, "cotracker": 1, "depth": 1}
+    assert uncached.runs == {"sam2": 1, "cotracker": 1, "background": 1, "depth": 1}
 
 
 def test_dav2_fallback_replaces_only_the_depth_model(perceived, clip, models):
@@ -127,7 +133,7 @@ def test_dav2_fallback_replaces_only_the_depth_model(perceived, clip, models):
     backend = NeuralBackend(depth_model="dav2", models={**models, "depth": dav2}, cache_dir=cache,
                             depth_input_size=DEPTH_INPUT, device="cpu")
     p = backend.perceive(sample, video, Path("synthetic.mp4"))
-    assert backend.runs == {"sam2": 0, "cotracker": 0, "depth": 1} and "dav2" in backend.version
+    assert backend.runs == {"sam2": 0, "cotracker": 0, "background": 0, "depth": 1} and "dav2" in backend.version
     np.testing.assert_array_equal(p.disparity, frame_disparity(dav2, video.frames, input_size=DEPTH_INPUT))
 
 

@@ -195,7 +195,7 @@ def test_cotracker_needs_its_checkpoint_unless_random(tmp_path, monkeypatch):
 
 
 def test_feature_nets_load_from_overrides_or_are_skipped_with_the_message(tmp_path, monkeypatch):
-    from rigidbench.evaluate import load_feature_nets
+    from rigidbench.perception.features import load_feature_nets
     from rigidbench.metrics.lpips_net import alexnet_features
 
     nets = load_feature_nets(device="cpu")
@@ -213,13 +213,15 @@ def test_feature_nets_load_from_overrides_or_are_skipped_with_the_message(tmp_pa
 
 
 def test_evaluate_stops_before_any_example_when_neural_weights_are_missing(tmp_path, monkeypatch):
-    from rigidbench.evaluate import EvaluationError, evaluate
+    from rigidbench.errors import EvaluationError
+    from rigidbench.evaluation import evaluate
 
     ckpt = tmp_path / "vda.pth"
     ckpt.write_bytes(b"present")
     monkeypatch.setenv("RIGIDBENCH_VDA", str(ckpt))  # one weight present: not reported
     (tmp_path / "preds").mkdir()
-    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "00000").mkdir(parents=True)
+    (tmp_path / "data" / "00000" / "metadata.json").write_text("{}")  # a bundle that is never read
     with pytest.raises(EvaluationError) as err:
         evaluate(tmp_path / "preds", tmp_path / "data", tmp_path / "run", perception="neural",
                  perception_options={"device": "cpu"})

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigidbench.evaluate import METRICS, aggregate
+from rigidbench.evaluation import aggregate
+from rigidbench.metrics import METRICS
 from rigidbench.report import ReportError, build_report, cmd_report, load_runs
 from rigidbench.report.analysis import analyse, choose_baseline, rank_marks
 from rigidbench.report.tables import to_latex, to_markdown
@@ -52,7 +53,7 @@ def write_run(root: Path, model: str, scores: dict[str, list], ids=IDS, skipped:
         (run_dir / "examples" / f"{sample_id}.json").write_text(json.dumps(record, indent=2, allow_nan=False))
         records.append(record)
     results = {"model": model, "perception": "gt", "official": False, "n_examples": len(records),
-               "n_reference": len(ids), "failed": failed or {}, "skipped_metrics": skipped, **aggregate(records),
+               "n_reference": len(ids), "failed": failed or {}, "skipped_metrics": skipped, **aggregate(records, tuple(METRICS)),
                "why_not_official": [f"the reference directory holds {len(ids)} examples, not the 100 of the eval "
                                     "split"]}
     (run_dir / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
@@ -358,8 +359,8 @@ def test_explicit_baseline(runs):
     assert [row[0].text for row in table.rows if row[0].text] == ["reference", "alpha", "gamma_run", "delta"]
 
 
-def test_cmd_report_turns_report_errors_into_user_errors(tmp_path):
-    from rigidbench.cli import UserError
+def test_cmd_report_errors_are_rigidbench_errors(tmp_path):
+    from rigidbench.errors import RigidBenchError as UserError
 
     bad = argparse.Namespace(runs=[tmp_path / "nothing"], out=tmp_path / "out", baseline=None, resamples=200, seed=0)
     with pytest.raises(UserError, match="nothing: run directory does not exist"):

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rigidbench.assets._mesh import Part, fit, to_object
+from rigidbench.assets import materials as M
+from rigidbench.assets._mesh import Part, fit, join, to_object
 from rigidbench.config import ObjectConfig
 
 log = logging.getLogger(__name__)
@@ -103,7 +104,6 @@ def merge_meshes(objects: list) -> tuple[Part, list]:
             evaluated.to_mesh_clear()
     if not parts:
         return None, []
-    from rigidbench.assets._mesh import join
     return join(parts), materials
 
 
@@ -142,8 +142,6 @@ def _merged_user_mesh(obj: ObjectConfig):
 
 def load_mesh_object(obj: ObjectConfig, name: str):
     """The user's mesh file for ``obj`` as one mesh object named ``name`` fitted to obj.size_m."""
-    from rigidbench.assets import materials as M
-
     part, mats, what = _merged_user_mesh(obj)
     if len(part.vertices) > MAX_VERTICES:
         log.warning("%s: mesh %s has %d vertices; consider decimating it below %d for faster hulls and renders",

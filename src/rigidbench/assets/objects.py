@@ -19,6 +19,7 @@ import numpy as np
 
 from rigidbench.assets import _paint, materials as M
 from rigidbench.assets._mesh import Part, Z_TO_X, box, fit, join, revolve, rounded_box, sphere, sweep, to_object
+from rigidbench.assets.loader import load_mesh_object, load_mesh_vertices
 from rigidbench.assets.standin import object_mesh, ramp_mesh
 from rigidbench.config import MaterialConfig, ObjectConfig
 from rigidbench.spec.types import RampShape
@@ -377,7 +378,6 @@ def _generic(obj: ObjectConfig) -> tuple[Part, Materials]:
 def build_object(obj: ObjectConfig, name: str):
     """A mesh object for ``obj`` named ``name``, bbox centred on the origin and equal to obj.size_m."""
     if obj.mesh_path:
-        from rigidbench.assets.loader import load_mesh_object
         return load_mesh_object(obj, name)
     builder = BUILDERS.get(obj.id)
     if builder is None:
@@ -395,7 +395,6 @@ def object_vertices(obj: ObjectConfig) -> np.ndarray:
     obj.size_m), without creating Blender data for procedural objects; a user mesh file is imported
     (needs bpy)."""
     if obj.mesh_path:
-        from rigidbench.assets.loader import load_mesh_vertices
         return load_mesh_vertices(obj)
     builder = BUILDERS.get(obj.id)
     part = _generic(obj)[0] if builder is None else builder()[0]

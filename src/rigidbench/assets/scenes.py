@@ -39,6 +39,8 @@ import numpy as np
 
 from rigidbench.assets import _furniture as F, _paint, materials as M
 from rigidbench.assets._mesh import Part, box, grid_plane, join, rot_z, to_object
+from rigidbench.assets._styles import style_for
+from rigidbench.assets.loader import import_objects
 from rigidbench.config import SceneConfig, SupportConfig
 
 log = logging.getLogger(__name__)
@@ -616,8 +618,6 @@ def build_environment(scene: SceneConfig):
     """Furnished environment for ``scene`` in the current bpy scene; see the module docstring."""
     import bpy
 
-    from rigidbench.assets._styles import style_for
-
     style = style_for(scene)
     kit = Kit(scene, style)
     floor_z = scene.floor_z_m
@@ -652,8 +652,6 @@ def build_environment(scene: SceneConfig):
 
 def _user_scene(kit: Kit, scene: SceneConfig) -> None:
     """Geometry from the scene's mesh file as occluders (objects kept as authored)."""
-    from rigidbench.assets.loader import import_objects
-
     for ob in import_objects(scene.mesh_path, scene.source or f"scene '{scene.id}'"):
         for coll in list(ob.users_collection):
             coll.objects.unlink(ob)

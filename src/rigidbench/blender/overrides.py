@@ -20,6 +20,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..assets import objects as asset_objects
+
 
 @dataclass(frozen=True)
 class RenderOverrides:
@@ -41,8 +43,6 @@ class RenderOverrides:
     def apply_dressing(self, dressing: Any, registry: Any) -> None:
         """Give each actor in ``materials_from`` its donor's materials (bpy; after ``dress_scene``)."""
         import bpy
-
-        from ..assets import objects as asset_objects
 
         donors: dict[str, list] = {}
         for name, donor in self.materials_from.items():

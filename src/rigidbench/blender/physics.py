@@ -43,11 +43,14 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..assets.collision import MAX_HULL_VERTICES, hull_mesh
+from ..assets.objects import object_vertices
 from ..assets.standin import Mesh, box, ramp_mesh
-from ..config import Registry
+from ..config import Registry, registry as load_registry
+from ..errors import SpecError
 from ..groundtruth.contacts import contact_pairs, convex_hull, detect_contacts
 from ..groundtruth.trajectory import Contact, Trajectory, save_contacts
 from ..spec.types import Body, BodyPhysics, SceneSpec
+from .session import import_bpy, link_object, reset_scene
 
 log = logging.getLogger(__name__)
 
@@ -108,8 +111,6 @@ def body_mesh(body: Body, registry: Registry) -> Mesh:
     obj = registry.object(body.asset)
     key = (obj.id, str(obj.mesh_path or ""), tuple(obj.size_m), tuple(body.size_m))
     if key not in _HULLS:
-        from ..assets.objects import object_vertices
-
         scale = np.asarray(body.size_m, float) / np.asarray(obj.size_m, float)
         _HULLS[key] = hull_mesh(object_vertices(obj) * scale, MAX_HULL_VERTICES)
     return _HULLS[key]
@@ -149,11 +150,11 @@ def scene_bodies(spec: SceneSpec, registry: Registry) -> tuple[SceneBody, ...]:
     out = []
     for b in spec.world_bodies():
         if b.name in (SUPPORT_NAME, FLOOR_NAME):
-            raise ValueError(f"example {spec.sample_id}: actor name '{b.name}' is reserved for scene geometry; "
+            raise SpecError(f"example {spec.sample_id}: actor name '{b.name}' is reserved for scene geometry; "
                              "rename the body in the spec")
         active = b.role == "active"
         if not active and b.role != "passive":
-            raise ValueError(f"example {spec.sample_id}: body '{b.name}' has role '{b.role}'; "
+            raise SpecError(f"example {spec.sample_id}: body '{b.name}' has role '{b.role}'; "
                              "expected 'active' or 'passive'")
         out.append(SceneBody(name=b.name, role=b.role, kind="object" if b.ramp is None else "ramp",
                              mesh=body_mesh(b, registry), position_m=b.position_m, quat_wxyz=b.quat_wxyz,
@@ -165,7 +166,7 @@ def scene_bodies(spec: SceneSpec, registry: Registry) -> tuple[SceneBody, ...]:
         out.append(floor)
     names = [b.name for b in out]
     if len(set(names)) != len(names):
-        raise ValueError(f"example {spec.sample_id}: body names must be unique, got {names}")
+        raise SpecError(f"example {spec.sample_id}: body names must be unique, got {names}")
     return tuple(out)
 
 
@@ -214,15 +215,11 @@ def _add_rigid_body(obj: Any, body: SceneBody, spec: SceneSpec) -> None:
 
 
 def _bpy() -> Any:
-    from .session import import_bpy
-
     return import_bpy()
 
 
 def build_rigid_scene(spec: SceneSpec, bodies: Sequence[SceneBody]) -> tuple[Any, list[Any]]:
     """Reset Blender and build the rigid-body scene; returns (bpy Scene, bpy Objects in ``bodies`` order)."""
-    from .session import link_object, reset_scene
-
     scene = reset_scene()
     _configure_world(scene, spec)
     objects = []
@@ -278,8 +275,6 @@ def simulate(spec: SceneSpec, registry: Registry | None = None) -> SimulationRes
     Blender's current scene is left holding the simulated bodies (named as in the spec, plus
     "support" and "floor") with a baked cache, so a renderer can dress it and step the frames."""
     if registry is None:
-        from ..config import registry as load_registry
-
         registry = load_registry()
     t0 = time.perf_counter()
     bodies = scene_bodies(spec, registry)

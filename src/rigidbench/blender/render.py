@@ -30,8 +30,13 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..assets import objects as asset_objects, scenes as asset_scenes
 from ..config import RenderPreset, Registry
 from ..spec.types import SceneSpec
+from . import physics
+from .camera import add_camera, search_camera
+from .physics import FLOOR_NAME, SUPPORT_NAME, scene_bodies
+from .session import link_object, reset_scene
 
 log = logging.getLogger(__name__)
 
@@ -330,16 +335,12 @@ def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[s
     physics support and floor are then hidden from render); otherwise plain materials are used."""
     import bpy
 
-    from .physics import FLOOR_NAME, SUPPORT_NAME
-
     have_objects, have_env = assets_available()
     render_objects: dict[str, Any] = {}
     hidden: list[str] = []
     for k, body in enumerate(spec.bodies):
         phys = objects[body.name]
         if have_objects:
-            from ..assets import objects as asset_objects
-
             name = f"{body.name}.render"
             if body.ramp is not None:
                 obj = asset_objects.build_ramp(body.ramp, registry.material(body.ramp.material), name)
@@ -357,8 +358,6 @@ def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[s
             render_objects[body.name] = phys
     environment = None
     if have_env:
-        from ..assets import scenes as asset_scenes
-
         environment = asset_scenes.build_environment(registry.scene(spec.scene))
         for name in (SUPPORT_NAME, FLOOR_NAME):
             if name in objects and (name == FLOOR_NAME or spec.support.name in environment.supports):
@@ -399,9 +398,6 @@ class ExampleRender:
 def build_search_scene(spec: SceneSpec, registry: Registry) -> tuple[Any, dict[str, Any], Dressing]:
     """Reset Blender; link every physics body's mesh (no rigid bodies) at its frame-0 pose and dress
     the scene. Returns (scene, physics objects by name, dressing)."""
-    from .physics import scene_bodies
-    from .session import link_object, reset_scene
-
     scene = reset_scene()
     objects = {}
     for body in scene_bodies(spec, registry):
@@ -415,8 +411,6 @@ def build_search_scene(spec: SceneSpec, registry: Registry) -> tuple[Any, dict[s
 
 def resolve_camera(spec: SceneSpec, registry: Registry) -> SceneSpec:
     """Run the camera search (paper A.3) in a geometry-only scene; returns the resolved spec."""
-    from .camera import search_camera
-
     scene, objects, dressing = build_search_scene(spec, registry)
     active = [dressing.render_objects[b.name] for b in spec.active]
     posed = {b.name: objects[b.name] for b in spec.bodies}
@@ -440,9 +434,6 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
     total)`` reports progress over the 2T renders (T data passes, then T RGB frames). ``overrides``
     (``overrides.RenderOverrides``) swaps actor materials or offsets rendered actor poses."""
     import bpy
-
-    from . import physics
-    from .camera import add_camera
 
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()

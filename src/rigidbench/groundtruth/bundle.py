@@ -31,7 +31,9 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import BundleError
 from ..spec.types import SceneSpec
+from ..video import VideoError, probe_video
 from . import camera_model as cm
 from .trajectory import Contact, Trajectory, load_contacts
 from .tracks import Tracks
@@ -51,10 +53,6 @@ BUNDLE_FILES = (VIDEO_FILE, MASKS_FILE, DEPTH_FILE, TRAJECTORIES_FILE, CONTACTS_
                 PROMPT_FILE, SPEC_FILE)
 PIXEL_CONVENTION = "pixel (x, y) = (column, row) with integer values at pixel centres; the image spans [-0.5, W-0.5]"
 DEPTH_CONVENTION = "Cycles Z pass: metres along the camera's optical axis; +inf where no surface is hit"
-
-
-class BundleError(ValueError):
-    """A bundle directory is missing files or holds inconsistent data; names the path."""
 
 
 def frame_name(k: int) -> str:
@@ -303,6 +301,63 @@ class Sample:
 # -- validation ----------------------------------------------------------------------------------
 
 
+SPLITS = ("eval", "train")
+
+
+def bundle_dirs(split_dir: str | Path) -> list[Path]:
+    """Complete bundles (subdirectories with metadata.json) of one split directory, sorted by id."""
+    split_dir = Path(split_dir)
+    if not split_dir.is_dir():
+        return []
+    return sorted(p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
+                  and (p / "metadata.json").is_file())
+
+
+def _holders(root: Path, depth: int = 3) -> list[Path]:
+    """Directories up to ``depth`` levels below ``root`` that hold bundles (shallowest first)."""
+    found, level = [], [root]
+    for _ in range(depth):
+        level = sorted(d for parent in level if parent.is_dir() for d in parent.iterdir()
+                       if d.is_dir() and not d.name.startswith("."))
+        found += [d for d in level if bundle_dirs(d)]
+        level = [d for d in level if d not in found]
+    return found
+
+
+def resolve_split_dir(data: str | Path, split: str | None = None) -> Path:
+    """The directory of reference bundles that ``--data`` (and ``--split``) mean.
+
+    ``data`` may be a split directory (``data/eval``: its subdirectories are bundles) or a data root
+    (``data``: it holds ``eval/`` and/or ``train/``) with ``split`` naming one, defaulting to the only
+    split present. Anything else is a BundleError saying what ``data`` holds and which ``--data`` was
+    probably meant."""
+    data = Path(data)
+    if not data.is_dir():
+        raise BundleError(f"{data}: data directory does not exist; render examples into it with "
+                          f"`rigidbench render --split {split or 'eval'} --data {data}`")
+    if bundle_dirs(data):
+        if split is not None and data.name in SPLITS and data.name != split:
+            raise BundleError(f"{data} is the '{data.name}' split directory, but --split {split} was given; "
+                              f"did you mean --data {data.parent / split}?")
+        return data
+    present = [s for s in SPLITS if bundle_dirs(data / s)]
+    if split is not None and split in present:
+        return data / split
+    if split is None and len(present) == 1:
+        return data / present[0]
+    if split is None and len(present) > 1:
+        raise BundleError(f"{data} holds the splits {' and '.join(present)}; choose one with --split "
+                          f"(or pass --data {data / present[0]})")
+    holders = _holders(data)
+    wanted = [h for h in holders if split is None or h.name == split] or holders
+    what = f"'{split}' reference bundles" if split else "reference bundles"
+    if wanted:
+        holds = ", ".join(f"{h.relative_to(data)}/" for h in holders[:4])
+        raise BundleError(f"no {what} in {data}/; it holds {holds}: did you mean --data {wanted[0]}?")
+    raise BundleError(f"no {what} in {data}/ (a bundle is a directory with metadata.json); render them with "
+                      f"`rigidbench render --split {split or 'eval'} --data {data}`")
+
+
 def _check(problems: list[str], ok: bool, message: str) -> bool:
     if not ok:
         problems.append(message)
@@ -375,8 +430,6 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
                 problems.append(f"{FRAMES_DIR}/{f.name}: cannot be read ({exc})")
 
     if check_video and (path / VIDEO_FILE).is_file():
-        from ..video import VideoError, probe_video
-
         try:
             info = probe_video(path / VIDEO_FILE)
             _check(problems, (info.width, info.height) == (W, H) and len(info.times_s) == T,

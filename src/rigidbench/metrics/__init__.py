@@ -1,69 +1,93 @@
 """The ten RigidBench measurements as pure functions over arrays, and their registry.
 
-`METRICS` maps each metric name, in the paper's table order, to a `MetricInfo` with its
-display name, direction and the function computing it (loaded lazily from "module:attr",
-so importing this package pulls in neither torch nor OpenCV). Every function returns a
-`MetricResult(value, per_frame)`; callers pass only active actors, with all arrays already
-cut to the common length T of the two clips.
+``METRICS`` holds one ``MetricInfo`` per measurement, in the paper's table order: its compute
+function (``target``, "module:attr" of ``compute(MetricInputs) -> MetricResult | None``, imported
+on first use so this package pulls in neither torch nor OpenCV), display name, direction, group,
+display scale and the failure modes whose response curve ``validate-metrics`` draws for it.
+Evaluation, the demo table, ``validate-metrics`` and the report all read the metric list from here;
+adding a metric is one module with its compute function plus one ``METRICS.add(...)``.
 """
 
 from __future__ import annotations
 
-import difflib
-import importlib
 from dataclasses import dataclass
-from types import MappingProxyType
 from typing import Callable
 
 from rigidbench.metrics.common import MetricResult
+from rigidbench.metrics.inputs import MetricInputs
+from rigidbench.registry import LazyRegistry
 
-__all__ = ["METRICS", "MetricInfo", "MetricResult", "get_metric"]
+__all__ = ["METRICS", "GROUPS", "MetricInfo", "MetricInputs", "MetricResult", "get_metric"]
+
+#: metric group -> heading in tables (the paper's two blocks)
+GROUPS = {"motion": "Object motion and geometry", "appearance": "Visual similarity and stability"}
 
 
 @dataclass(frozen=True)
 class MetricInfo:
-    """Registry entry: `target` is "module:function" returning a MetricResult."""
+    """Registry entry of one measurement.
+
+    target: "module:attr" of compute(MetricInputs) -> MetricResult (None: skipped); group: a key of
+    GROUPS; display_scale: factor applied in report tables (BGDrift is shown x10^3); curve_modes:
+    failure modes meant to move it, in order of preference (validate-metrics' response curve);
+    control_modes: failure modes it must not respond to, drawn beside the main curve."""
 
     name: str
+    target: str
     display_name: str
     higher_is_better: bool
-    target: str
+    group: str
     summary: str
+    curve_modes: tuple[str, ...] = ()
+    control_modes: tuple[str, ...] = ()
+    display_scale: float = 1.0
+    aliases: tuple[str, ...] = ()
 
     @property
     def direction(self) -> str:
         return "higher" if self.higher_is_better else "lower"
 
-    def load(self) -> Callable[..., MetricResult]:
-        """Import and return the function that computes this metric."""
-        module, attr = self.target.split(":")
-        return getattr(importlib.import_module(module), attr)
+    @property
+    def arrow(self) -> str:
+        return "\u2191" if self.higher_is_better else "\u2193"
+
+    def load(self) -> Callable[[MetricInputs], MetricResult | None]:
+        """Import and return this metric's compute function."""
+        return METRICS.load(self.name)
 
 
-def _entry(name: str, display: str, higher: bool, target: str, summary: str) -> tuple[str, MetricInfo]:
-    return name, MetricInfo(name, display, higher, f"rigidbench.metrics.{target}", summary)
+METRICS: LazyRegistry[MetricInfo] = LazyRegistry("metric")
 
 
-METRICS: MappingProxyType[str, MetricInfo] = MappingProxyType(dict([
-    _entry("iou", "IoU", True, "masks:iou", "per-actor mask IoU, empty union = 1; actors then frames"),
-    _entry("centroid_l2", "L2", False, "masks:centroid_l2", "mask-centroid distance / H; empty actor-frames omitted"),
-    _entry("chamfer", "Cham.", False, "masks:chamfer", "bidirectional mean nearest-pixel distance / H"),
-    _entry("ate", "ATE", False, "tracks:ate", "mean track distance / H over jointly visible point-frames"),
-    _entry("ate3d", "ATE-3D", False, "depth:ate3d", "actor-position RMSE / mean displacement of moving actors"),
-    _entry("si_mse", "SI-MSE", False, "depth:si_mse", "per-frame variance of the log-depth residual"),
-    _entry("ssim", "SSIM", True, "appearance:ssim", "mean frame SSIM, data range 255"),
-    _entry("lpips", "LPIPS", False, "appearance:lpips", "mean frame LPIPS, AlexNet backbone"),
-    _entry("iddrift", "IdDrift", False, "identity:iddrift", "1 - patch feature cosine similarity, actors equal weight"),
-    _entry("bgdrift", "BGDrift", False, "background:bgdrift", "weighted residual of background corners after RANSAC / H"),
-]))
+def _builtin(name: str, display: str, higher: bool, group: str, target: str, summary: str, curve: tuple[str, ...],
+             control: tuple[str, ...] = (), scale: float = 1.0, aliases: tuple[str, ...] = ()) -> None:
+    METRICS.add(MetricInfo(name, f"rigidbench.metrics.{target}", display, higher, group, summary, curve, control,
+                           scale, (display, *aliases)))
+
+
+_builtin("iou", "IoU", True, "motion", "masks:score_iou", "per-actor mask IoU, empty union = 1; actors then frames",
+         ("slow",))
+_builtin("centroid_l2", "L2", False, "motion", "masks:score_centroid_l2",
+         "mask-centroid distance / H; empty actor-frames omitted", ("slow",), aliases=("centroid",))
+_builtin("chamfer", "Cham.", False, "motion", "masks:score_chamfer",
+         "bidirectional mean nearest-pixel distance / H", ("slow",))
+_builtin("ate", "ATE", False, "motion", "tracks:score_ate", "mean track distance / H over jointly visible point-frames",
+         ("slow",))
+_builtin("ate3d", "ATE-3D", False, "motion", "depth:score_ate3d",
+         "actor-position RMSE / mean displacement of moving actors", ("depth-offset", "slow"))
+_builtin("si_mse", "SI-MSE", False, "motion", "depth:score_si_mse", "per-frame variance of the log-depth residual",
+         ("depth-offset", "camera-shake"))
+_builtin("ssim", "SSIM", True, "appearance", "appearance:score_ssim", "mean frame SSIM, data range 255", ("gamma",))
+_builtin("lpips", "LPIPS", False, "appearance", "appearance:score_lpips", "mean frame LPIPS, AlexNet backbone",
+         ("gamma",))
+_builtin("iddrift", "IdDrift", False, "appearance", "identity:score_iddrift",
+         "1 - patch feature cosine similarity, actors equal weight", ("identity-swap", "gamma"))
+_builtin("bgdrift", "BGDrift", False, "appearance", "background:score_bgdrift",
+         "weighted residual of background corners after RANSAC / H", ("background-wobble",), ("camera-shake",),
+         scale=1e3)
 
 
 def get_metric(name: str) -> MetricInfo:
-    """Return the registry entry for a metric name or display name (case-insensitive)."""
-    lookup = {key: info for info in METRICS.values() for key in (info.name, info.display_name.lower())}
-    info = lookup.get(name.lower())
-    if info is None:
-        close = difflib.get_close_matches(name.lower(), list(lookup), n=1)
-        hint = f" Did you mean '{lookup[close[0]].name}'?" if close else ""
-        raise KeyError(f"unknown metric '{name}'.{hint} Known metrics: {', '.join(METRICS)}")
-    return info
+    """The registry entry for a metric name or display name (case-insensitive); UnknownNameError
+    (a KeyError) with the nearest names otherwise."""
+    return METRICS[name]

@@ -167,3 +167,14 @@ def lpips(ref_rgb: np.ndarray, gen_rgb: np.ndarray, net: Callable, batch_size: i
             values.append(d.reshape(d.shape[0], -1)[:, 0].float().cpu().numpy())
     per_frame = np.concatenate(values).astype(np.float64) if values else np.zeros(0)
     return MetricResult(finite_mean(per_frame), per_frame)
+
+
+# -- registry adapters: compute(MetricInputs) -> MetricResult | None (None: network unavailable) ------
+
+
+def score_ssim(x) -> MetricResult:
+    return ssim(x.ref_rgb, x.gen_rgb)
+
+
+def score_lpips(x) -> MetricResult | None:
+    return lpips(x.ref_rgb, x.gen_rgb, x.lpips_net) if x.lpips_net is not None else None

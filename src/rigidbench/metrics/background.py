@@ -8,13 +8,18 @@ rotation and uniform scale; if it returns no transform the raw displacement ||x_
 the residual. Frames with fewer than 4 corners are skipped (they add nothing to either sum).
 Residuals of all corners in C_t (inliers and outliers) are weighted by conf_0 * conf_t and
 pooled over every frame and corner before dividing by H.
+
+Non-finite values (the rule shared with ATE, ATE-3D and IdDrift, `common.finite_and_visible`):
+a corner whose position or confidence is NaN or infinite at frame t counts as having zero
+confidence there, so it is left out of C_t (and, if that happens at frame 0, out of every C_t);
+it never reaches the RANSAC fit or either sum.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult
+from rigidbench.metrics.common import MetricResult, finite_and_visible
 
 MIN_CORNERS = 4
 RANSAC_THRESHOLD_PX = 3.0
@@ -78,10 +83,11 @@ def bgdrift(corner_tracks: np.ndarray, confidences: np.ndarray, image_height: in
                          f"{corner_tracks.shape} and {confidences.shape}")
     t_len = corner_tracks.shape[1]
     per_frame = np.full(t_len, np.nan)
-    finite = np.isfinite(corner_tracks).all(axis=2) & np.isfinite(confidences)
+    # (C, T): positive finite confidence at a finite position; anything else weighs zero.
+    weighted = finite_and_visible(np.isfinite(confidences) & (np.nan_to_num(confidences) > 0), corner_tracks)
     total_wr = total_w = 0.0
     for t in range(1, t_len):
-        usable = (finite[:, 0] & finite[:, t] & (confidences[:, 0] > 0) & (confidences[:, t] > 0))
+        usable = weighted[:, 0] & weighted[:, t]
         if usable.sum() < min_corners:
             continue
         r = frame_residuals(corner_tracks[usable, 0], corner_tracks[usable, t], ransac_threshold_px)
@@ -91,3 +97,8 @@ def bgdrift(corner_tracks: np.ndarray, confidences: np.ndarray, image_height: in
         per_frame[t] = float(w @ r) / float(w.sum()) / image_height
     value = total_wr / total_w / image_height if total_w > 0 else float("nan")
     return MetricResult(value, per_frame)
+
+
+def score_bgdrift(x) -> MetricResult:
+    """Registry adapter: BGDrift of the MetricInputs ``x``."""
+    return bgdrift(x.bg_tracks, x.bg_confidence, x.height)

@@ -36,6 +36,27 @@ def finite_mean(x: np.ndarray) -> float:
     return float(x[keep].mean()) if keep.any() else float("nan")
 
 
+def finite_and_visible(visible: np.ndarray, *tracks: np.ndarray) -> np.ndarray:
+    """visible: (P, T) bool; tracks: any number of (P, T, 2) px. Returns (P, T) bool: visible and
+    both coordinates of every given track finite. The one rule for non-finite positions (ATE,
+    ATE-3D, IdDrift, BGDrift): a NaN or infinite position counts as not visible at that frame,
+    whatever its visibility flag or confidence says, so it adds nothing to any sum or count."""
+    keep = np.asarray(visible, dtype=bool).copy()
+    for xy in tracks:
+        keep &= np.isfinite(np.asarray(xy, dtype=np.float64)).all(axis=-1)
+    return keep
+
+
+def inside_image(xy: np.ndarray, height: int, width: int) -> np.ndarray:
+    """xy: (..., 2) px (centres at integers). Returns (...) bool: finite and within the area the
+    pixels cover, [-0.5, W - 0.5] x [-0.5, H - 0.5] (where `sample_bilinear` gives a value)."""
+    xy = np.asarray(xy, dtype=np.float64)
+    x, y = xy[..., 0], xy[..., 1]
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x <= width - 0.5)
+                & (y >= -0.5) & (y <= height - 0.5))
+
+
 def nested_mean(q: np.ndarray) -> MetricResult:
     """q: (T, N) per-frame, per-actor values, non-finite = undefined. Returns the mean over
     frames with >= 1 defined actor of the mean over that frame's defined actors, and the
@@ -80,7 +101,7 @@ def sample_bilinear(image: np.ndarray, xy: np.ndarray, transform=None) -> np.nda
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     out = np.full(len(xy), np.nan)
     x, y = xy[:, 0], xy[:, 1]
-    inside = np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+    inside = inside_image(xy, h, w)
     if not inside.any():
         return out
     col = np.clip(x[inside], 0.0, w - 1.0)

@@ -10,7 +10,18 @@ processed one at a time so a 49 x 704 x 1280 clip never needs a float64 copy of 
 
 Which track points ATE-3D uses: the generated track of every point that is visible in both
 the generated and the reference clip at frame t (the perception rule "generated and
-reference visibility must both be true"), assigned to its actor by the actor index.
+reference visibility must both be true"), assigned to its actor by the actor index, and
+whose generated position is
+
+- finite: a NaN or infinite position counts as not visible (`common.finite_and_visible`, the
+  rule shared with ATE, IdDrift and BGDrift);
+- inside the image, i.e. within the area the pixels cover, [-0.5, W - 0.5] x [-0.5, H - 0.5]
+  (`common.inside_image`): a generated point that has left the image has no predicted depth
+  Z^_t(u^), so it is excluded, not given the depth of the nearest border pixel (within the
+  outer half pixel the edge pixels are used, as bilinear sampling does at any image edge);
+- on a pixel with a valid aligned depth (positive aligned disparity, finite prediction).
+
+An actor-frame none of whose points passes these tests has no reconstruction and is not in V3.
 """
 
 from __future__ import annotations
@@ -20,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, finite_mean, geometric_median, sample_bilinear, unproject
+from rigidbench.metrics.common import (MetricResult, finite_and_visible, finite_mean, geometric_median, inside_image,
+                                       sample_bilinear, unproject)
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +159,8 @@ def reconstruct_actor_positions(gen_tracks: np.ndarray, visible: np.ndarray, act
                                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """gen_tracks: (P, T, 2) px; visible: (P, T) bool; actor_index: (P,) int; disparity: (T, h, w).
     Returns (N, T, 3) world positions in m: geometric median of each actor's unprojected visible
-    points, with depth sampled bilinearly from the aligned depth map; NaN where none is finite.
+    points, with depth sampled bilinearly from the aligned depth map; points with a non-finite
+    position, outside the image or on invalid depth are left out; NaN where no point is left.
     With ``ref_points_m`` (P, T, 3), the simulator positions of the same tracked points, also
     returns the geometric median of exactly the points used at each actor-frame (else None)."""
     t_len = gen_tracks.shape[1]
@@ -156,8 +169,9 @@ def reconstruct_actor_positions(gen_tracks: np.ndarray, visible: np.ndarray, act
     ref = None if ref_points_m is None else np.full((n_actors, t_len, 3), np.nan)
     if alignment.n_pixels == 0:
         return out, ref
+    usable = finite_and_visible(visible, gen_tracks) & inside_image(gen_tracks, *shape_hw)
     for t in range(t_len):
-        points_t = np.flatnonzero(visible[:, t])
+        points_t = np.flatnonzero(usable[:, t])
         if points_t.size == 0:
             continue
         xy = np.asarray(gen_tracks[points_t, t], dtype=np.float64)
@@ -218,3 +232,22 @@ def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarr
     np.divide(np.where(in_v3, sq_err, 0.0).sum(axis=0), counts, out=per_frame, where=counts > 0)
     per_frame = np.sqrt(per_frame) / scale
     return MetricResult(value, per_frame)
+
+
+# -- registry adapters: compute(MetricInputs) -> MetricResult -----------------------------------------
+
+
+def _alignment(x) -> DepthAlignment:
+    """The disparity-to-depth fit of one example, shared by ATE-3D and SI-MSE."""
+    return x.shared("disparity_alignment", lambda: fit_disparity_alignment(x.gen_disparity, x.ref_depth_m))
+
+
+def score_ate3d(x) -> MetricResult:
+    """ATE-3D against the simulated actor positions p_{a,t} (the paper's equation)."""
+    c2w = np.asarray(x.camera_to_world, np.float64)
+    return ate3d(x.gen_tracks, x.ref_visibility, x.gen_visibility, x.track_actor, x.gen_disparity, x.ref_depth_m,
+                 x.K, c2w[:3, :3], c2w[:3, 3], x.actor_positions_m, alignment=_alignment(x))
+
+
+def score_si_mse(x) -> MetricResult:
+    return si_mse(x.gen_disparity, x.ref_depth_m, alignment=_alignment(x))

@@ -1,15 +1,18 @@
 """IdDrift: one minus the cosine similarity of features of track-centred patches (paper eq. appendix-iddrift).
 
-Patches: 64 x 64 pixels centred on the reference track in the reference frame and on the
-generated track in the generated frame, at every frame t >= 1 where the point is visible in
-both clips. With pixel centres at integers, a patch centred at (x, y) covers columns
-round(x) - 32 ... round(x) + 31 (rounding half up) and likewise for rows. A patch is
-kept only if at least 32 of its columns and at least 32 of its rows lie inside the image; the
-part outside the image is filled with zeros (black). A pair counts only if both patches are
-kept. Patches are resized to 224 x 224 (bilinear, antialiased, half-pixel centres), scaled to
-[0, 1] and normalised with the ImageNet mean and std before the feature function sees them.
-Features are L2-normalised before their dot product. Similarities are averaged within each
-actor and then across actors that have at least one pair.
+Patches: 64 x 64 pixels requested around the reference track in the reference frame and
+around the generated track in the generated frame, at every frame t >= 1 where the point is
+visible in both clips and both positions are finite (a NaN or infinite position counts as not
+visible, `common.finite_and_visible`, the rule shared with ATE, ATE-3D and BGDrift). With
+pixel centres at integers, a patch centred at (x, y) requests columns rint(x) - 32 ...
+rint(x) + 31 and likewise for rows, where rint rounds half to even (40.5 -> 40, 41.5 -> 42,
+-0.5 -> 0), as Python's and numpy's round do in the authors' release. A patch is kept only
+if at least 32 of its columns and at least 32 of its rows lie inside the image; a pair counts
+only if both patches are kept. The feature network sees the part of the patch inside the
+image (no padding), resized on its own to 224 x 224 (bilinear, half-pixel centres; a border
+crop of w x h pixels is stretched to the full input), scaled to [0, 1] and normalised with
+the ImageNet mean and std. Features are L2-normalised before their dot product. Similarities
+are averaged within each actor and then across actors that have at least one pair.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, finite_mean, infer_device
+from rigidbench.metrics.common import MetricResult, finite_and_visible, finite_mean, infer_device
 from rigidbench.metrics.tracks import check_tracks
 
 PATCH_SIZE_PX = 64
@@ -28,49 +31,61 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def patch_origins(centers_xy: np.ndarray, size: int = PATCH_SIZE_PX) -> np.ndarray:
-    """centers_xy: (M, 2) px (centres at integers). Returns (M, 2) int64 (col, row) of each patch's first pixel."""
-    return np.floor(np.asarray(centers_xy, dtype=np.float64) - size / 2 + 0.5).astype(np.int64)
+    """centers_xy: (M, 2) finite px (centres at integers). Returns (M, 2) int64 (col, row) of the requested
+    patch's first pixel: rint(centre) - size // 2, rounding half to even."""
+    return np.rint(np.asarray(centers_xy, dtype=np.float64)).astype(np.int64) - size // 2
+
+
+def patch_boxes(centers_xy: np.ndarray, height: int, width: int, size: int = PATCH_SIZE_PX) -> np.ndarray:
+    """centers_xy: (M, 2) px. Returns (M, 4) int64 (col0, col1, row0, row1), the half-open part of each
+    requested patch inside the image (empty, col1 <= col0 or row1 <= row0, for a non-finite centre)."""
+    centers_xy = np.asarray(centers_xy, dtype=np.float64).reshape(-1, 2)
+    finite = np.isfinite(centers_xy).all(axis=1)
+    # Far-off finite centres are clipped first so the integer conversion cannot overflow.
+    limit = float(max(height, width) + 2 * size)
+    safe = np.where(finite[:, None], np.clip(centers_xy, -limit, limit), -limit)
+    origin = patch_origins(safe, size)
+    col0, row0 = np.maximum(origin[:, 0], 0), np.maximum(origin[:, 1], 0)
+    col1, row1 = np.minimum(origin[:, 0] + size, width), np.minimum(origin[:, 1] + size, height)
+    return np.stack([col0, col1, row0, row1], axis=1)
 
 
 def patch_is_valid(centers_xy: np.ndarray, height: int, width: int, size: int = PATCH_SIZE_PX) -> np.ndarray:
     """centers_xy: (M, 2) px. Returns (M,) bool: finite centre and >= half the patch width and height inside."""
-    centers_xy = np.asarray(centers_xy, dtype=np.float64)
-    finite = np.isfinite(centers_xy).all(axis=1)
-    origin = patch_origins(np.where(finite[:, None], centers_xy, 0.0), size)
-    inside_cols = np.minimum(origin[:, 0] + size, width) - np.maximum(origin[:, 0], 0)
-    inside_rows = np.minimum(origin[:, 1] + size, height) - np.maximum(origin[:, 1], 0)
-    return finite & (2 * inside_cols >= size) & (2 * inside_rows >= size)
+    box = patch_boxes(centers_xy, height, width, size)
+    return (2 * (box[:, 1] - box[:, 0]) >= size) & (2 * (box[:, 3] - box[:, 2]) >= size)
 
 
-def extract_patches(frame: np.ndarray, centers_xy: np.ndarray, size: int = PATCH_SIZE_PX) -> np.ndarray:
-    """frame: (H, W, 3) uint8; centers_xy: (M, 2) px with valid patches. Returns (M, size, size, 3) uint8, zeros outside."""
+def extract_patches(frame: np.ndarray, centers_xy: np.ndarray, size: int = PATCH_SIZE_PX) -> list[np.ndarray]:
+    """frame: (H, W, 3) uint8; centers_xy: (M, 2) px with valid patches. Returns M (h, w, 3) uint8 crops, the
+    part of each patch inside the image (views into frame; 64 x 64 away from the border)."""
     h, w = frame.shape[:2]
-    padded = np.zeros((h + 2 * size, w + 2 * size, frame.shape[2]), dtype=frame.dtype)
-    padded[size:size + h, size:size + w] = frame
-    origin = patch_origins(centers_xy, size) + size
-    # Valid patches overlap the image by >= size/2, so their padded origins lie in [size/2, W + size/2].
-    origin[:, 0] = np.clip(origin[:, 0], 0, w + size)
-    origin[:, 1] = np.clip(origin[:, 1], 0, h + size)
-    offs = np.arange(size)
-    rows = origin[:, 1, None, None] + offs[None, :, None]
-    cols = origin[:, 0, None, None] + offs[None, None, :]
-    return padded[rows, cols]
+    return [frame[r0:r1, c0:c1] for c0, c1, r0, r1 in patch_boxes(centers_xy, h, w, size)]
 
 
-def preprocess_patches(patches: np.ndarray, device: str | None = None):
-    """patches: (B, s, s, 3) uint8. Returns (B, 3, 224, 224) float32 torch tensor, ImageNet-normalised."""
+def preprocess_patches(patches, device: str | None = None):
+    """patches: B (h_i, w_i, 3) uint8 crops (a list, or a (B, s, s, 3) array). Returns (B, 3, 224, 224)
+    float32 torch tensor: each crop resized on its own to 224 x 224, scaled to [0, 1], ImageNet-normalised."""
     import torch
     import torch.nn.functional as F
 
-    x = torch.from_numpy(np.ascontiguousarray(patches)).to(device=device).permute(0, 3, 1, 2).float() / 255.0
-    x = F.interpolate(x, size=(FEATURE_INPUT_SIZE_PX, FEATURE_INPUT_SIZE_PX), mode="bilinear",
-                      align_corners=False, antialias=True)
-    mean = torch.tensor(IMAGENET_MEAN, device=x.device).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD, device=x.device).view(1, 3, 1, 1)
-    return (x - mean) / std
+    out = torch.empty((len(patches), 3, FEATURE_INPUT_SIZE_PX, FEATURE_INPUT_SIZE_PX), device=device)
+    by_shape: dict[tuple[int, ...], list[int]] = {}
+    for i, patch in enumerate(patches):
+        by_shape.setdefault(tuple(patch.shape), []).append(i)
+    for idx in by_shape.values():  # crops of one shape are resized together
+        crops = np.ascontiguousarray(np.stack([patches[i] for i in idx]))
+        x = torch.from_numpy(crops).to(device=device).permute(0, 3, 1, 2).float() / 255.0
+        # antialias only acts when shrinking; a crop of at most 64 pixels is always enlarged.
+        out[torch.as_tensor(idx, device=out.device)] = F.interpolate(
+            x, size=(FEATURE_INPUT_SIZE_PX, FEATURE_INPUT_SIZE_PX), mode="bilinear", align_corners=False,
+            antialias=True)
+    mean = torch.tensor(IMAGENET_MEAN, device=out.device).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, device=out.device).view(1, 3, 1, 1)
+    return (out - mean) / std
 
 
-def _normalized_features(feature_fn: Callable, patches: np.ndarray, device: str | None):
+def _normalized_features(feature_fn: Callable, patches: list[np.ndarray], device: str | None):
     import torch
 
     f = feature_fn(preprocess_patches(patches, device)).float()
@@ -81,8 +96,8 @@ def _normalized_features(feature_fn: Callable, patches: np.ndarray, device: str 
 def patch_pairs(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
                 gen_visible: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     """Tracks (P, T, 2), visibilities (P, T). Returns point and frame indices (K,) of the valid
-    pairs: t >= 1, visible in both clips, and both patches kept."""
-    ok = ref_visible & gen_visible
+    pairs: t >= 1, visible in both clips, both positions finite, and both patches kept."""
+    ok = finite_and_visible(ref_visible & gen_visible, ref_tracks, gen_tracks)
     ok[:, 0] = False
     p_idx, t_idx = np.nonzero(ok)
     keep = (patch_is_valid(ref_tracks[p_idx, t_idx], height, width)
@@ -105,10 +120,10 @@ def pair_similarities(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.n
             ref_patches, gen_patches = [], []
             for t in np.unique(t_idx[sel]):
                 here = sel[t_idx[sel] == t]
-                ref_patches.append(extract_patches(ref_rgb[t], ref_tracks[p_idx[here], t]))
-                gen_patches.append(extract_patches(gen_rgb[t], gen_tracks[p_idx[here], t]))
-            f_ref = _normalized_features(feature_fn, np.concatenate(ref_patches), device)
-            f_gen = _normalized_features(feature_fn, np.concatenate(gen_patches), device)
+                ref_patches += extract_patches(ref_rgb[t], ref_tracks[p_idx[here], t])
+                gen_patches += extract_patches(gen_rgb[t], gen_tracks[p_idx[here], t])
+            f_ref = _normalized_features(feature_fn, ref_patches, device)
+            f_gen = _normalized_features(feature_fn, gen_patches, device)
             sims[sel] = (f_ref * f_gen).sum(dim=1).double().cpu().numpy()
     return sims
 
@@ -142,3 +157,11 @@ def iddrift(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.ndarray, ge
         at_t = t_idx == t
         per_frame[t] = 1.0 - np.mean([sims[at_t & (actors == a)].mean() for a in np.unique(actors[at_t])])
     return MetricResult(1.0 - finite_mean(np.asarray(actor_means)), per_frame)
+
+
+def score_iddrift(x) -> MetricResult | None:
+    """Registry adapter: IdDrift of the MetricInputs ``x`` (None without the DINOv2 network)."""
+    if x.identity_net is None:
+        return None
+    return iddrift(x.ref_rgb, x.gen_rgb, x.ref_tracks, x.gen_tracks, x.ref_visibility, x.gen_visibility,
+                   x.track_actor, x.identity_net)

@@ -106,3 +106,18 @@ def chamfer_per_actor(ref_masks: np.ndarray, gen_masks: np.ndarray) -> np.ndarra
 def chamfer(ref_masks: np.ndarray, gen_masks: np.ndarray) -> MetricResult:
     """ref_masks, gen_masks: (T, N, H, W) bool. Returns nested-mean Chamfer / H and (T,) per frame."""
     return nested_mean(chamfer_per_actor(ref_masks, gen_masks))
+
+
+# -- registry adapters: compute(MetricInputs) -> MetricResult -----------------------------------------
+
+
+def score_iou(x) -> MetricResult:
+    return iou(x.ref_masks, x.gen_masks)
+
+
+def score_centroid_l2(x) -> MetricResult:
+    return centroid_l2(x.ref_masks, x.gen_masks)
+
+
+def score_chamfer(x) -> MetricResult:
+    return chamfer(x.ref_masks, x.gen_masks)

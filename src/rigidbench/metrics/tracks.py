@@ -1,15 +1,17 @@
 """2D Absolute Trajectory Error over point tracks (paper eq. appendix-ate).
 
-Tracks are (P, T, 2) pixel coordinates (x, y) with centres at +0.5; a point-frame counts only
-when both the reference and the generated visibility flags are true, and every such pair has
-equal weight (no per-actor or per-frame averaging).
+Tracks are (P, T, 2) pixel coordinates (x, y) with pixel centres at integers (see
+`common`); a point-frame counts only when both the reference and the generated visibility
+flags are true and both positions are finite (a NaN or infinite position counts as not
+visible, `common.finite_and_visible`), and every such pair has equal weight (no per-actor or
+per-frame averaging).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, check_same_shape
+from rigidbench.metrics.common import MetricResult, check_same_shape, finite_and_visible
 
 
 def check_tracks(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
@@ -34,11 +36,17 @@ def ate(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
     """ref_tracks, gen_tracks: (P, T, 2) px; visibilities (P, T) bool. Returns the mean of
     ||u^ - u|| / H over jointly visible, finite point-frames (NaN if none) and (T,) per-frame means."""
     check_tracks(ref_tracks, gen_tracks, ref_visible, gen_visible)
-    err = np.linalg.norm(np.asarray(gen_tracks, np.float64) - np.asarray(ref_tracks, np.float64),
-                         axis=-1) / float(image_height)
-    keep = joint_visibility(ref_visible, gen_visible) & np.isfinite(err)
+    keep = finite_and_visible(joint_visibility(ref_visible, gen_visible), ref_tracks, gen_tracks)
+    with np.errstate(invalid="ignore"):
+        err = np.linalg.norm(np.asarray(gen_tracks, np.float64) - np.asarray(ref_tracks, np.float64),
+                             axis=-1) / float(image_height)
     total = float(err[keep].mean()) if keep.any() else float("nan")
     counts = keep.sum(axis=0)
     per_frame = np.full(err.shape[1], np.nan)
     np.divide(np.where(keep, err, 0.0).sum(axis=0), counts, out=per_frame, where=counts > 0)
     return MetricResult(total, per_frame)
+
+
+def score_ate(x) -> MetricResult:
+    """Registry adapter: ATE of the MetricInputs ``x``."""
+    return ate(x.ref_tracks, x.gen_tracks, x.ref_visibility, x.gen_visibility, x.height)

@@ -2,14 +2,17 @@
 
 A backend turns one generated video (decoded, resized to the reference resolution, at its own
 frame times) into a ``Perception``; the evaluator then aligns it to the reference timestamps
-(linear in time for tracks, disparity and confidences; nearest for masks and visibility) and
-passes the arrays to the metric functions. Backends:
+(linear in time for tracks, disparity and track confidences; nearest for masks and visibility
+flags, the background corners' 0/1 weights included) and passes the arrays to the metric
+functions. Background corners carry their own timestamps (``bg_times_s``): the neural backend
+tracks them on the clip already resampled to the reference times, as the published runs did.
+Backends:
 
 - ``gt``: exact, from the world state a built-in predictor wrote beside its video;
 - ``neural``: SAM 2.1, CoTracker3 and Video Depth Anything on the generated clip (``neural``).
 
 Adding a backend is one module exposing a class with ``name``, ``version`` and ``perceive``,
-registered in ``BACKENDS``.
+plus one ``BACKENDS.add(BackendInfo(...))``.
 """
 
 from __future__ import annotations
@@ -20,9 +23,9 @@ from typing import Protocol
 
 import numpy as np
 
-
-class PerceptionError(Exception):
-    """Perception could not run for an example; names the example and what to do."""
+from ..errors import PerceptionError
+from ..registry import LazyRegistry
+from ..video import aligned_length, interpolate_linear, interpolate_nearest
 
 
 def save_arrays(obj, path: str | Path) -> None:
@@ -44,17 +47,22 @@ class Perception:
     """Per-frame quantities recovered from a generated clip (T frames at ``times_s``).
 
     masks (T,N,H,W) bool for the N active actors (reference order); tracks (P,T,2) float32 pixel
-    (x, y) of the reference query points, visibility (P,T) bool, track_actor (P,) int index into
-    the active actors; disparity (T,H,W) float32 (affine-invariant inverse depth); bg_tracks
-    (C,T,2) float32 background corners, bg_confidence (C,T) float32 in [0, 1].
+    (x, y) of the reference query points, visibility (P,T) bool, confidence (P,T) float32 in
+    [0, 1] (the tracker's own confidence, kept apart from the visibility decision; 1 where a
+    known point is visible and 0 elsewhere for exact backends), track_actor (P,) int index into
+    the active actors; disparity (T,H,W) float32 (affine-invariant inverse depth). Background
+    corners at their own times bg_times_s (Tb,) float64 seconds: bg_tracks (C,Tb,2) float32,
+    bg_confidence (C,Tb) float32 BGDrift weights (the tracker's 0/1 visibility).
     """
 
     times_s: np.ndarray
     masks: np.ndarray
     tracks: np.ndarray
     visibility: np.ndarray
+    confidence: np.ndarray
     track_actor: np.ndarray
     disparity: np.ndarray
+    bg_times_s: np.ndarray
     bg_tracks: np.ndarray
     bg_confidence: np.ndarray
 
@@ -70,22 +78,33 @@ class Perception:
         return load_arrays(cls, path)
 
     def aligned(self, ref_times_s: np.ndarray) -> "Perception":
-        """Resample to the reference timestamps that fall within this clip (paper, appendix B.1)."""
-        from ..video import aligned_length, interpolate_linear, interpolate_nearest
+        """Resample to the reference timestamps that fall within this clip (paper, appendix B.1).
+
+        The background arrays are resampled from ``bg_times_s`` to the same timestamps (exact
+        copies where those are the reference times already); reference times the background
+        arrays do not reach get NaN tracks and zero weight.
+        """
 
         n = aligned_length(self.times_s, ref_times_s)
         dst = np.asarray(ref_times_s[:n], dtype=np.float64)
-        src = self.times_s
 
-        def lin(x: np.ndarray, axis: int) -> np.ndarray:
-            return np.moveaxis(interpolate_linear(np.moveaxis(x, axis, 0), src, dst), 0, axis).astype(x.dtype)
+        def lin(x: np.ndarray, axis: int, src: np.ndarray, to: np.ndarray) -> np.ndarray:
+            return np.moveaxis(interpolate_linear(np.moveaxis(x, axis, 0), src, to), 0, axis).astype(x.dtype)
 
-        def near(x: np.ndarray, axis: int) -> np.ndarray:
-            return np.moveaxis(interpolate_nearest(np.moveaxis(x, axis, 0), src, dst), 0, axis)
+        def near(x: np.ndarray, axis: int, src: np.ndarray, to: np.ndarray) -> np.ndarray:
+            return np.moveaxis(interpolate_nearest(np.moveaxis(x, axis, 0), src, to), 0, axis)
 
-        return replace(self, times_s=dst, masks=near(self.masks, 0), tracks=lin(self.tracks, 1),
-                       visibility=near(self.visibility, 1), disparity=lin(self.disparity, 0),
-                       bg_tracks=lin(self.bg_tracks, 1), bg_confidence=lin(self.bg_confidence, 1))
+        src, bg_src = self.times_s, np.asarray(self.bg_times_s, dtype=np.float64)
+        nb = aligned_length(bg_src, dst)
+        bg_tracks = np.full((self.bg_tracks.shape[0], n, 2), np.nan, dtype=self.bg_tracks.dtype)
+        bg_confidence = np.zeros((self.bg_confidence.shape[0], n), dtype=self.bg_confidence.dtype)
+        if nb:
+            bg_tracks[:, :nb] = lin(self.bg_tracks, 1, bg_src, dst[:nb])
+            bg_confidence[:, :nb] = near(self.bg_confidence, 1, bg_src, dst[:nb])
+        return replace(self, times_s=dst, masks=near(self.masks, 0, src, dst), tracks=lin(self.tracks, 1, src, dst),
+                       visibility=near(self.visibility, 1, src, dst), confidence=lin(self.confidence, 1, src, dst),
+                       disparity=lin(self.disparity, 0, src, dst), bg_times_s=dst.copy(), bg_tracks=bg_tracks,
+                       bg_confidence=bg_confidence)
 
 
 class Backend(Protocol):
@@ -97,22 +116,24 @@ class Backend(Protocol):
         reference resolution (native frame times); prediction_path: the video file."""
 
 
-BACKENDS = {
-    "gt": "rigidbench.perception.gt:GroundTruthBackend",
-    "neural": "rigidbench.perception.neural:NeuralBackend",
-}
+@dataclass(frozen=True)
+class BackendInfo:
+    """Registry entry of a perception backend: ``target`` is "module:Class" constructed with the options."""
+
+    name: str
+    target: str
+    description: str
+    aliases: tuple[str, ...] = ()
+
+
+BACKENDS: LazyRegistry[BackendInfo] = LazyRegistry("perception backend", [
+    BackendInfo("gt", "rigidbench.perception.gt:GroundTruthBackend",
+                "exact masks, tracks, depth and background motion from the world state a predictor wrote"),
+    BackendInfo("neural", "rigidbench.perception.neural:NeuralBackend",
+                "SAM 2.1, CoTracker3 offline, Video Depth Anything (or Depth Anything V2) on the generated clip"),
+])
 
 
 def get_backend(name: str, **options) -> Backend:
-    import importlib
-
-    try:
-        module_name, attr = BACKENDS[name].split(":")
-    except KeyError:
-        raise PerceptionError(f"unknown perception backend '{name}'; choose one of {', '.join(BACKENDS)}") from None
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        raise PerceptionError(f"perception backend '{name}' needs the package '{exc.name}'; "
-                              f"install it with: pip install -e '.[neural]'") from None
-    return getattr(module, attr)(**options)
+    """The backend registered as ``name``, constructed with ``options``."""
+    return BACKENDS.load(name)(**options)

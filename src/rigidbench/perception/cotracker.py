@@ -10,16 +10,25 @@ argument, $RIGIDBENCH_COTRACKER, or the torch hub cache (``<hub>/facebookresearc
 and is loaded with ``source="local"``; the checkpoint from ``checkpoint``,
 $RIGIDBENCH_COTRACKER_CKPT, or the torch hub cache (``<hub>/checkpoints/scaled_offline.pth``).
 
-Queries are the ground-truth track points (the reference's frame-0 query pixels, 20 per active
-actor from a 3-pixel erosion of its mask) and the background Shi-Tomasi corners, tracked
-together in one call. The public predictor returns only a thresholded visibility (CoTracker3:
-visibility x confidence > 0.6), but BGDrift weights corners by CoTracker3's confidences. When the
-loaded model has the upstream predictor layout (``model.model`` the network, ``interp_shape``,
-``support_grid_size`` and ``get_points_on_a_grid`` in its forward's module), ``track_points`` runs the network
-the way the predictor does (resize to the model resolution, a support grid appended, the query
-frame overwritten with the query) and keeps the continuous visibility x confidence; ``visible`` is
-then that value > 0.6, the predictor's own decision. Other models fall back to the public call, where
-a float visibility is used as the confidence and a boolean one gives 1 or 0.
+Two separate calls, as the published evaluation made them (RigidBench release:
+``eval/track/cotracker3.py`` tracks the actor points, ``eval/score/background.py`` the
+background corners): the ground-truth track points (the reference's frame-0 query pixels, 20 per
+active actor from a 3-pixel erosion of its mask) on the generated clip, and the background
+Shi-Tomasi corners on the clip resampled to the reference times. CoTracker3 attends across all
+tracks of a call, so one joint call would let the corners move the actor tracks and back.
+
+Visibility is the OFFLINE predictor's rule (``cotracker/predictor.py``,
+``CoTrackerPredictor._compute_sparse_tracks``): visible where the network's visibility
+(a sigmoid) > 0.9, with no confidence term, and always on the query frame. (The ONLINE predictor
+uses visibility x confidence > 0.6; that is not the model the paper names.) The network's
+confidence head is kept as a separate output: when the loaded model has the upstream predictor
+layout (``model.model`` the network, ``interp_shape``, ``support_grid_size`` and
+``get_points_on_a_grid`` in its forward's module), ``track_points`` runs the network the way the
+predictor does (resize to the model resolution, a 6 x 6 support grid appended, 6 iterations, the
+query frame overwritten with the query), so tracks and visibility equal the public call's and the
+confidence comes along. Other models fall back to the public call: a boolean visibility is taken
+as it is, a float one is thresholded at 0.9, and the confidence is that decision as 1 or 0.
+BGDrift weights each corner by the boolean visibility (0/1), as the published runs did.
 """
 
 from __future__ import annotations
@@ -29,12 +38,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import WeightsUnavailable
+from . import weights
+
 log = logging.getLogger(__name__)
 
 HUB_REPO = "facebookresearch/co-tracker"
 HUB_ENTRY = "cotracker3_offline"
-VISIBLE_THRESHOLD = 0.5  # only for models that return a float visibility
-SOFT_THRESHOLD = 0.6  # CoTracker3's predictor: visible where visibility x confidence > 0.6
+VISIBILITY_THRESHOLD = 0.9  # CoTracker3 offline predictor: visible where visibility > 0.9 (no confidence term)
 NETWORK_ITERS = 6  # refinement iterations the upstream predictor asks of its network
 
 
@@ -44,8 +55,6 @@ def load_cotracker(repo_dir: str | Path | None = None, checkpoint: str | Path | 
     hub entry's random initialisation (tests, benchmarks). Raises WeightsUnavailable when absent."""
     import torch
 
-    from . import weights
-    from .features import WeightsUnavailable
 
     repo = weights.locate("cotracker-code", repo_dir)
     if repo is None and not allow_download:
@@ -78,8 +87,10 @@ def query_points(sample) -> np.ndarray:
 
 
 def track_points(model, frames: np.ndarray, points_xy: np.ndarray, device=None):
-    """frames (T,H,W,3) uint8; points_xy (N,2) frame-0 pixels (x, y). Returns tracks (N,T,2) float32,
-    visible (N,T) bool and confidence (N,T) float32 in [0, 1]."""
+    """frames (T,H,W,3) uint8; points_xy (N,2) frame-0 pixels (x, y), tracked together in one call.
+    Returns tracks (N,T,2) float32, visible (N,T) bool (the offline predictor's visibility > 0.9)
+    and confidence (N,T) float32 in [0, 1] (CoTracker3's confidence head; 1 on the query frame; the
+    0/1 visibility for models without one)."""
     import torch
 
     t = frames.shape[0]
@@ -93,32 +104,30 @@ def track_points(model, frames: np.ndarray, points_xy: np.ndarray, device=None):
     queries = torch.zeros((1, n, 3), dtype=torch.float32, device=device)
     queries[0, :, 1:] = torch.from_numpy(np.asarray(points_xy, np.float32)).to(device)
     with torch.inference_mode():
-        soft = soft_visibility_tracks(model, video, queries)
-        if soft is not None:
-            tracks, confidence = soft
-            tracks = tracks[0].float().permute(1, 0, 2).cpu().numpy()
-            confidence = confidence[0].float().clamp(0, 1).permute(1, 0).cpu().numpy()
-            if tracks.shape != (n, t, 2):
-                raise ValueError(f"CoTracker returned tracks of shape {tracks.shape}, expected {(n, t, 2)}")
-            return tracks.astype(np.float32), confidence > SOFT_THRESHOLD, confidence.astype(np.float32)
-        tracks, visible = model(video, queries=queries)
-    tracks = tracks[0].float().permute(1, 0, 2).cpu().numpy()  # (N,T,2)
-    visible = visible[0].permute(1, 0).cpu()
-    if visible.dtype == torch.bool:
-        confidence = visible.float().numpy()
-        visible = visible.numpy()
-    else:
-        confidence = visible.float().clamp(0, 1).numpy()
-        visible = confidence > VISIBLE_THRESHOLD
-    if tracks.shape != (n, t, 2):
+        out = network_tracks(model, video, queries)
+        if out is not None:
+            tracks, visibility, confidence = (x[0].float().transpose(0, 1).cpu() for x in out)
+            visible = (visibility > VISIBILITY_THRESHOLD).numpy()
+            confidence = confidence.clamp(0, 1).numpy()
+        else:
+            tracks, visibility = model(video, queries=queries)
+            tracks = tracks[0].float().transpose(0, 1).cpu()
+            visibility = visibility[0].transpose(0, 1).cpu()
+            visible = (visibility if visibility.dtype == torch.bool else visibility.float() > VISIBILITY_THRESHOLD
+                       ).numpy()
+            confidence = visible.astype(np.float32)
+    tracks = tracks.numpy()
+    if tracks.shape != (n, t, 2) or visible.shape != (n, t):
         raise ValueError(f"CoTracker returned tracks of shape {tracks.shape}, expected {(n, t, 2)}")
     return tracks.astype(np.float32), visible.astype(bool), confidence.astype(np.float32)
 
 
-def soft_visibility_tracks(model, video, queries):
+def network_tracks(model, video, queries):
     """video (B,T,3,H,W) float [0, 255]; queries (B,N,3) (t, x, y) px. Returns (tracks (B,T,N,2) px,
-    visibility x confidence (B,T,N)) from a CoTracker3 predictor's network, or None when ``model``
-    does not have the upstream predictor layout (then only its public call is usable)."""
+    visibility (B,T,N), confidence (B,T,N)) from a CoTracker3 predictor's network, run as the
+    offline predictor runs it (``_compute_sparse_tracks`` with its support grid), visibility and
+    confidence 1 on the query frame; or None when ``model`` does not have the upstream predictor
+    layout (then only its public call is usable)."""
     import inspect
 
     import torch
@@ -141,10 +150,10 @@ def soft_visibility_tracks(model, video, queries):
     out = net(video=small.reshape(b, t, c, h, w), queries=torch.cat([q, grid], dim=1), iters=NETWORK_ITERS)
     if len(out) != 4:  # CoTracker2's network has no confidence head
         return None
-    tracks, vis, conf = out[0][:, :, :n].clone(), out[1][:, :, :n], out[2][:, :, :n]
-    soft = (vis * conf).clone()
-    frame = q[:, :, 0].long()  # the query frame shows the query point itself, fully visible
+    tracks, vis, conf = out[0][:, :, :n].clone(), out[1][:, :, :n].clone(), out[2][:, :, :n].clone()
+    frame = q[:, :, 0].long()  # the query frame shows the query point itself, visible
     for i in range(b):
         tracks[i, frame[i], torch.arange(n)] = q[i, :, 1:]
-        soft[i, frame[i], torch.arange(n)] = 1.0
-    return tracks * tracks.new_tensor([(W - 1) / (w - 1), (H - 1) / (h - 1)]), soft
+        vis[i, frame[i], torch.arange(n)] = 1.0
+        conf[i, frame[i], torch.arange(n)] = 1.0
+    return tracks * tracks.new_tensor([(W - 1) / (w - 1), (H - 1) / (h - 1)]), vis, conf

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .features import WeightsUnavailable
+from ..errors import WeightsUnavailable
 from .video_depth import (autocast_dtype, build_vda_network, check_frames, hf_cached_file, network_size,
                           preprocess_frames)
 

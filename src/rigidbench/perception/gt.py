@@ -14,10 +14,12 @@ Built-in predictors (the reference itself and the failure-mode suite) write, bes
 - ``bg_flow`` (T,h,w,2) float32: additional local background displacement in pixels on a coarse
   grid spanning the frame-0 image (zeros when the background moves rigidly).
 
+A video decoded only up to some time (``read_video(until_s=...)``) uses the state's first frames.
 The backend reads that file and returns the same quantities the neural models estimate:
-disparity is 1/depth; background corners are detected on the video's frame 0 outside the frame-0
-actor masks and carried by the known background motion, with confidence 1 while a corner is in the
-image and not covered by an actor, else 0.
+disparity is 1/depth; the track confidence is 1 where a point is visible and 0 elsewhere;
+background corners are detected on the video's frame 0 outside the frame-0 actor masks and carried
+by the known background motion (at the video's frame times), with weight 1 while a corner is in
+the image and not covered by an actor, else 0 (the neural backend's 0/1 tracker visibility).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..metrics.background import detect_background_corners
 from .base import Perception, PerceptionError, load_arrays, save_arrays
 
 STATE_SUFFIX = ".state.npz"
@@ -123,10 +126,10 @@ class GroundTruthBackend:
     """Exact perception from the world state written by a built-in predictor."""
 
     name = "gt"
-    version = "1"
+    whole_clip = False  # needs the generated clip only up to the last reference time
+    version = "2"  # 2: Perception carries track confidences and background timestamps
 
     def perceive(self, sample, video, prediction_path: Path) -> Perception:
-        from ..metrics.background import detect_background_corners
 
         path = state_path(prediction_path)
         if not path.exists():
@@ -140,6 +143,13 @@ class GroundTruthBackend:
         if video.frames.shape[1:3] != (h, w):
             raise PerceptionError(f"{path}: world state is {w}x{h} but the video is "
                                   f"{video.frames.shape[2]}x{video.frames.shape[1]}; rerun the predictor")
+        if video.n_frames < n and np.allclose(state.times_s[:video.n_frames], video.times_s, atol=1e-3):
+            # the video was decoded only up to some time (read_video(until_s=...)): the state's first frames
+            keep = video.n_frames
+            state = WorldState(times_s=state.times_s[:keep], masks=state.masks[:keep], depth_m=state.depth_m[:keep],
+                               tracks=state.tracks[:, :keep], visibility=state.visibility[:, :keep],
+                               bg_affine=state.bg_affine[:keep], bg_flow=state.bg_flow[:keep])
+            n = keep
         if n != video.n_frames or not np.allclose(state.times_s, video.times_s, atol=1e-3):
             raise PerceptionError(f"{path}: world state has {n} frames but {prediction_path.name} decodes to "
                                   f"{video.n_frames} (or different timestamps); rerun the predictor")
@@ -152,6 +162,7 @@ class GroundTruthBackend:
         return Perception(
             times_s=np.asarray(state.times_s, np.float64), masks=state.masks.astype(bool),
             tracks=state.tracks.astype(np.float32), visibility=state.visibility.astype(bool),
+            confidence=state.visibility.astype(np.float32),
             track_actor=np.asarray(sample.track_active_index, dtype=np.int64),
-            disparity=disparity_from_depth(state.depth_m), bg_tracks=bg_tracks,
-            bg_confidence=background_confidence(bg_tracks, state.masks))
+            disparity=disparity_from_depth(state.depth_m), bg_times_s=np.asarray(state.times_s, np.float64),
+            bg_tracks=bg_tracks, bg_confidence=background_confidence(bg_tracks, state.masks))

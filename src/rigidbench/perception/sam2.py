@@ -10,6 +10,11 @@ frames are resized to the model's square input (bilinear, antialiased), scaled t
 ImageNet-normalised, as the SAM 2 video processor does; a prompt mask is resized the same way
 and binarised at 0.5; output logits (256 x 256) go to the input size and then to the frame
 size, both bilinearly, as the processor's ``post_process_masks`` does.
+
+Precision: float32 (``device.CUDA_PRECISION``), as in the published runs, which used the official
+``SAM2VideoPredictor`` without autocast. Like that predictor (``sam2_video_predictor.py``), which
+stores each frame's memory features as bfloat16, ``transformers`` rounds the memory features to
+bfloat16 when it stores them and computes with them in the session dtype (float32 here).
 """
 
 from __future__ import annotations
@@ -17,6 +22,10 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+
+from ..errors import WeightsUnavailable
+from . import weights
+from .device import inference_dtype
 
 log = logging.getLogger(__name__)
 
@@ -42,10 +51,8 @@ def hiera_large_config():
 
 def load_sam2(path: str | None = None, device: str = "cpu", dtype=None, allow_download: bool = False):
     """SAM 2.1 Hiera Large from ``path``, $RIGIDBENCH_SAM2 or the Hugging Face cache, in eval mode on
-    ``device`` (``dtype`` default: bf16 on CUDA, float32 on CPU). Raises WeightsUnavailable if absent."""
-    from . import weights
-    from .device import inference_dtype
-    from .features import WeightsUnavailable
+    ``device`` (``dtype`` default: float32 on CUDA and CPU, as the published runs' ``SAM2VideoPredictor``
+    ran with no autocast: weights, frames and activations float32). Raises WeightsUnavailable if absent."""
 
     try:
         from transformers import Sam2VideoModel

@@ -401,7 +401,14 @@ class DPTHead(nn.Module):
         path = s.refinenet1(path, r1)
         out = F.interpolate(s.output_conv1(path), (rows * self.patch_size, cols * self.patch_size),
                             mode="bilinear", align_corners=True)
-        return s.output_conv2(out)
+        if not self.temporal:  # Depth Anything V2's head (dpt.py): no precision override
+            return s.output_conv2(out)
+        # Video Depth Anything (dpt_temporal.py): the last output convolution runs in float32 with
+        # autocast off, and its result goes back to the dtype it came in (fp16 under autocast).
+        dtype = out.dtype
+        with torch.autocast(device_type=out.device.type, enabled=False):
+            out = s.output_conv2(out.float())
+        return out.to(dtype)
 
 
 class VideoDepthAnything(nn.Module):

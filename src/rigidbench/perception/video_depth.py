@@ -17,7 +17,9 @@ does:
   mapped onto the previous windows by a least-squares scale and shift fitted on the two
   re-used key frames (clipped at zero), and cross-faded linearly over the 8 overlapping frames.
 
-Precision follows upstream: fp16 autocast on CUDA, float32 on CPU.
+Precision follows upstream: float32 weights under fp16 autocast on CUDA, except the head's last
+output convolution, which runs in float32 with autocast off (``vda_model.DPTHead``, as upstream's
+``dpt_temporal.py``); float32 on CPU.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .features import WeightsUnavailable
+from ..errors import WeightsUnavailable
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from .features import WeightsUnavailable
+from ..errors import WeightsUnavailable
 
 LPIPS_LIN_FILE = Path("weights") / "v0.1" / "alex.pth"
 
@@ -292,7 +292,7 @@ def format_listing(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def cmd_weights(args) -> int:
+def cmd_weights(args, ctx=None) -> int:
     """`rigidbench weights`: args.list (bool), args.download (None or list of names; [] = defaults),
     args.json (bool). Returns 0 on success, 1 if a download failed or a name is unknown."""
     import json

@@ -15,9 +15,19 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from ..context import RunContext
+from ..errors import UserError
+from ..evaluation import evaluate, ready_backend
+from ..manifest import eval_rows
+from ..metrics import METRICS
+from ..perception.features import load_feature_nets
+from ..predictors import PREDICTORS, PredictContext
+from ..report import build_report
+from .predict import predict
+from .render import render_rows
+
 # Image-space modes cost milliseconds; `gravity` re-renders every example once more.
 DEMO_MODES = ("reference", "static", "slow", "delayed", "gamma", "camera-shake", "background-wobble", "gravity")
-DISPLAY = ("IoU", "L2", "Cham.", "ATE", "ATE-3D", "SI-MSE", "SSIM", "LPIPS", "IdDrift", "BGDrift")
 
 
 def first_of_each_task(rows):
@@ -29,8 +39,8 @@ def first_of_each_task(rows):
 
 
 def format_table(table: dict[str, list[float | None]]) -> str:
-    """Model x metric means as fixed-width text; missing or non-finite values print as n/a."""
-    lines = [f"{'model':18s}" + "".join(f"{d:>9s}" for d in DISPLAY)]
+    """Model x metric means (in registry order) as fixed-width text; missing or non-finite values print as n/a."""
+    lines = [f"{'model':18s}" + "".join(f"{info.display_name:>9s}" for info in METRICS.values())]
     for mode, values in table.items():
         cells = ("n/a" if v is None or not math.isfinite(v) else f"{v:.4f}" for v in values)
         lines.append(f"{mode:18s}" + "".join(f"{c:>9s}" for c in cells))
@@ -42,52 +52,43 @@ def _stage(number: int, total: int, text: str, started: float) -> None:
 
 
 def run_demo(out_dir: Path, quality: str = "preview", severity: float = 0.5, perception: str = "gt",
-             modes: Sequence[str] = DEMO_MODES, report: bool = True, resamples: int = 20000) -> int:
+             modes: Sequence[str] = DEMO_MODES, report: bool = True, resamples: int = 20000,
+             ctx: RunContext | None = None) -> int:
     """Render, predict, evaluate and report; returns the process exit status."""
-    from ..config import registry
-    from ..evaluate import METRICS, evaluate, load_feature_nets
-    from ..manifest import eval_rows
-    from ..models.failure_modes import FAILURE_MODES
-    from .predict import predict
-    from .render import render_rows
-
-    unknown = [m for m in modes if m not in FAILURE_MODES]
-    if unknown:
-        raise KeyError(f"unknown demo mode(s) {', '.join(unknown)}; built-in predictors: {', '.join(FAILURE_MODES)}")
+    ctx = ctx or RunContext()
+    for mode in modes:
+        if mode not in PREDICTORS:
+            raise UserError(f"demo mode: {PREDICTORS.unknown_message(mode)}")
     if perception != "gt":  # check the networks before spending minutes on rendering
-        from ..evaluate import ready_backend
-
         ready_backend(perception)
     started = time.time()
     out_dir = Path(out_dir)
-    reg = registry()
+    reg = ctx.registry
     rows = first_of_each_task(eval_rows(reg))
     data = out_dir / "data"
     stages = 4 if report else 3
     _stage(1, stages, f"rendering {len(rows)} evaluation examples (one per task) at the '{quality}' preset "
                       f"into {data}", started)
-    _, render_failures = render_rows(rows, reg, data, quality=quality)
+    _, render_failures = render_rows(rows, reg, data, quality=quality, config_dirs=ctx.config_dirs)
     for failure in render_failures:
         print(f"  render FAILED {failure.sample_id}: {failure.reason}", flush=True)
     if len(render_failures) == len(rows):
         print("every example failed to render; nothing to evaluate", flush=True)
         return 1
     split_dir = data / "eval"
-    nets = load_feature_nets()
+    nets = load_feature_nets(ctx.device)
     table, run_dirs, problems = {}, [], {}
     _stage(2, stages, f"predicting and evaluating {len(modes)} built-in predictors (severity {severity}, "
                       f"{perception} perception)", started)
     for mode in modes:
         preds = out_dir / "predictions" / mode
-        _, failed = predict(mode, split_dir, preds, 0.0 if mode == "reference" else severity)
+        run = predict(mode, split_dir, preds, PredictContext(ctx, 0.0 if mode == "reference" else severity))
         summary = evaluate(preds, split_dir, out_dir / "runs" / mode, nets=nets, model=mode, perception=perception)
-        problems.update({f"{mode}/{k}": v for k, v in {**failed, **summary.failed}.items()})
+        problems.update({f"{mode}/{k}": v for k, v in {**run.failed, **summary.failed}.items()})
         table[mode] = [summary.results["overall"][m]["mean"] for m in METRICS]
         run_dirs.append(summary.out_dir)
     report_html = None
     if report:
-        from ..report import build_report
-
         _stage(3, stages, f"writing the report ({resamples} bootstrap resamples)", started)
         report_html = build_report(run_dirs, out_dir / "report", resamples=resamples, seed=0)
     _stage(stages, stages, f"results: means over {len(rows)} examples, {perception} perception", started)

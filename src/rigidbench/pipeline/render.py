@@ -1,7 +1,7 @@
 """The render stage: manifest rows -> sample bundles in DATA/<split>/<id>/.
 
-Each example runs in its own child Python process (bpy is imported only there; it inherits the
-environment, $RIGIDBENCH_CONFIG_PATH included), so a crash inside Blender loses only that example;
+Each example runs in its own child Python process (bpy is imported only there; its job description
+carries the run context's configuration directories), so a crash inside Blender loses only that example;
 ``--workers N`` runs N at once. A bundle is built in ``DATA/<split>/.<id>.tmp`` and renamed into place when complete and validated, so a
 rerun skips finished examples and restarts interrupted ones from scratch. Failures are reported
 with the example id and the reason; the other examples continue.
@@ -10,22 +10,35 @@ with the example id and the reason; the other examples continue.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import shutil
 import signal
 import sys
 import time
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..config import ConfigError, Registry, RenderPreset
+from .. import __version__, manifest
+from ..blender.camera import camera_pose
+from ..blender.render import render_example
+from ..blender.session import bpy_available
+from ..config import Registry, RenderPreset, registry as load_registry
+from ..context import RunContext
+from ..errors import EXAMPLE_ERRORS, UserError
 from ..groundtruth import bundle as B
+from ..groundtruth.camera_model import intrinsics
+from ..groundtruth.contact_sheet import write_contact_sheet
+from ..groundtruth.contacts import quat_to_matrix
+from ..groundtruth.tracks import DEPTH_TOLERANCE, EROSION_RADIUS_PX, POINTS_PER_ACTOR, ground_truth_tracks
+from ..groundtruth.trajectory import save_contacts
 from ..manifest import ManifestRow
+from ..spec.build import build_scene_spec
+from ..video import write_video
 
 log = logging.getLogger(__name__)
 
@@ -56,14 +69,6 @@ def is_complete(data_dir: Path, row: ManifestRow) -> bool:
 def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -> None:
     """Turn a ``blender.render.ExampleRender`` into the bundle files inside ``tmp`` (frames already there)."""
     from PIL import Image
-
-    from .. import __version__
-    from ..blender.camera import camera_pose
-    from ..groundtruth.camera_model import intrinsics
-    from ..groundtruth.contacts import quat_to_matrix
-    from ..groundtruth.tracks import DEPTH_TOLERANCE, EROSION_RADIUS_PX, POINTS_PER_ACTOR, ground_truth_tracks
-    from ..groundtruth.trajectory import save_contacts
-    from ..video import write_video
 
     spec = result.spec
     T = result.index.shape[0]
@@ -113,8 +118,6 @@ def render_spec(spec: Any, registry: Registry, preset: RenderPreset, final_dir: 
     importable); the camera search runs unless ``spec.camera`` is set. ``overrides`` (a
     ``blender.overrides.RenderOverrides``) changes actor materials or rendered poses, not the
     simulation. Returns ``final_dir``."""
-    from ..blender.render import render_example
-
     t0 = time.perf_counter()
     tmp = B.prepare_tmp(final_dir)
     passes = tmp / ".passes"
@@ -134,8 +137,6 @@ def render_to_bundle(row: ManifestRow, registry: Registry, preset: RenderPreset,
     """Render one manifest row into DATA/<split>/<id>/ in this process; returns the bundle path.
 
     Raises SpecError, BundleError, RuntimeError or OSError naming the example."""
-    from ..spec.build import build_scene_spec
-
     spec = build_scene_spec(row, registry)
     return render_spec(spec, registry, preset, bundle_dir(data_dir, row), device=device, threads=threads,
                        on_frame=on_frame)
@@ -172,16 +173,11 @@ def _child_main() -> None:
 
     row = ManifestRow.from_dict(job["row"])
     logging.basicConfig(level=logging.WARNING, format=f"%(levelname)s [{row.sample_id}] %(name)s: %(message)s")
-    from ..config import registry as load_registry
-    from ..spec.build import SpecError
-    from ..video import VideoError
-
     try:
         reg = load_registry(job["config_dirs"])
         path = render_to_bundle(row, reg, reg.preset(job["preset"]), Path(job["data_dir"]), device=job["device"],
                                 threads=job["threads"], on_frame=lambda done, total: send("frame", done, total))
-    except (SpecError, ConfigError, B.BundleError, VideoError, RuntimeError, ValueError, KeyError, OSError,
-            ImportError) as exc:
+    except (*EXAMPLE_ERRORS, RuntimeError, ImportError) as exc:  # RuntimeError: Blender's own errors
         send("failed", f"{type(exc).__name__}: {exc}")
         return
     send("done", str(path))
@@ -327,30 +323,23 @@ def _ids(values: Sequence[str] | None) -> list[str]:
     return [v.strip() for chunk in (values or []) for v in chunk.replace(",", " ").split() if v.strip()]
 
 
-def _user_error(message: str) -> Exception:
-    from ..cli import UserError
-
-    return UserError(message)
-
-
-def cmd_render(args: argparse.Namespace) -> int:
-    from .. import manifest
-    from ..config import registry
-
-    reg = registry()  # --config directories reach here (and the workers) through $RIGIDBENCH_CONFIG_PATH
+def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
+    reg = ctx.registry
     try:
         rows = manifest.select(manifest.rows(args.split, reg), _ids(args.ids) or None, args.limit)
     except KeyError as exc:
-        raise _user_error(exc.args[0]) from None
+        raise UserError(exc.args[0]) from None
     if args.quality not in reg.presets:
-        raise _user_error(f"unknown quality '{args.quality}'; presets: {', '.join(reg.presets)}")
-    from ..blender.session import bpy_available
-
+        raise UserError(f"unknown quality '{args.quality}'; presets: {', '.join(reg.presets)}")
     if not bpy_available():
-        raise _user_error("rendering needs Blender as a Python module (bpy 4.5, Python 3.11); "
-                          "install it with `pip install -e '.[sim]'`")
+        raise UserError("rendering needs Blender as a Python module (bpy 4.5, Python 3.11); "
+                        "install it with `pip install -e '.[sim]'`")
     data = Path(args.data)
+    if B.bundle_dirs(data):
+        raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
+                        f"DATA/<split>/; did you mean --data {data.parent}?")
     done, failures = render_rows(rows, reg, data, quality=args.quality, workers=args.workers, device=args.device,
+                                 config_dirs=ctx.config_dirs,
                                  progress=not getattr(args, "no_progress", False),
                                  quiet=not getattr(args, "verbose", False))
     skipped = len(rows) - len(done) - len(failures)
@@ -363,18 +352,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def cmd_show(args: argparse.Namespace) -> int:
-    from ..groundtruth.contact_sheet import write_contact_sheet
-
-    path = Path(args.data) / args.split / args.id
+def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
+    split_dir = B.resolve_split_dir(args.data, args.split)
+    path = split_dir / args.id
     if not path.is_dir():
-        raise _user_error(f"{path}: no bundle for example {args.id}; render it first with "
-                          f"`rigidbench render --split {args.split} --ids {args.id}`")
-    out = Path(args.out) if args.out else Path(f"{args.split}_{args.id}_contact_sheet.png")
-    try:
-        write_contact_sheet(B.Sample(path), out)
-    except B.BundleError as exc:
-        raise _user_error(str(exc)) from None
+        raise UserError(f"{path}: no bundle for example {args.id}; render it first with "
+                        f"`rigidbench render --split {split_dir.name} --ids {args.id}`")
+    out = Path(args.out) if args.out else Path(f"{split_dir.name}_{args.id}_contact_sheet.png")
+    write_contact_sheet(B.Sample(path), out)
     print(f"wrote {out}")
     return 0
 

@@ -10,8 +10,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ..config import ConfigError, Registry
-from ..spec.build import SpecError, build_scene_spec
+from ..blender.physics import CONTACTS_FILE, simulate_to_dir
+from ..config import Registry
+from ..errors import EXAMPLE_ERRORS
+from ..spec.build import build_scene_spec
 
 log = logging.getLogger(__name__)
 
@@ -20,8 +22,6 @@ def simulate_rows(rows, registry: Registry, out_dir: Path,
                   progress: bool = True) -> tuple[list[tuple[str, str]], list[str]]:
     """Simulate every row into ``out_dir/<id>/``; returns ((sample id, reason) per failure, skipped ids)."""
     from tqdm import tqdm
-
-    from ..blender.physics import CONTACTS_FILE, simulate_to_dir
 
     failures, skipped = [], []
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -32,7 +32,7 @@ def simulate_rows(rows, registry: Registry, out_dir: Path,
             continue
         try:
             simulate_to_dir(build_scene_spec(row, registry), target, registry, overwrite=True)
-        except (SpecError, ConfigError, RuntimeError, ValueError, OSError) as exc:
+        except (*EXAMPLE_ERRORS, RuntimeError) as exc:  # RuntimeError: Blender's own errors
             failures.append((row.sample_id, str(exc)))
             log.error("example %s failed: %s", row.sample_id, exc)
     return failures, skipped

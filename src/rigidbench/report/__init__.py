@@ -17,7 +17,12 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from rigidbench.metrics import METRICS
+from rigidbench.report.analysis import analyse
+from rigidbench.report.figures import build_figures
+from rigidbench.report.html import render_page
 from rigidbench.report.load import ReportError, ScoreTable, load_runs
+from rigidbench.report.tables import build_tables, to_markdown, write_csvs, write_tables
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +35,6 @@ _CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "at
 
 def report_notes(data) -> list[str]:
     """Plain-language notes on what the report could not do as usual (one run, skipped metrics, baseline)."""
-    from rigidbench.metrics import METRICS
-
     t = data.table
     notes = list(t.notes)
     if len(t.models) == 1:
@@ -61,11 +64,6 @@ def report_notes(data) -> list[str]:
 
 def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, baseline: str | None = None) -> Path:
     """Read run directories, write tables, figures and report.html into out_dir. Returns the report.html path."""
-    from rigidbench.report.analysis import analyse
-    from rigidbench.report.figures import build_figures
-    from rigidbench.report.html import render_page
-    from rigidbench.report.tables import build_tables, to_markdown, write_csvs, write_tables
-
     out_dir = Path(out_dir)
     table = load_runs(run_dirs)
     log.info("loaded %d runs over %d shared examples", len(table.models), len(table.example_ids))
@@ -93,13 +91,8 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     return page
 
 
-def cmd_report(args) -> int:
+def cmd_report(args, ctx=None) -> int:
     """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed."""
-    try:
-        page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline)
-    except ReportError as exc:
-        from rigidbench.cli import UserError
-
-        raise UserError(str(exc)) from None
+    page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline)
     print(f"report for {len(args.runs)} run(s): {page}")
     return 0

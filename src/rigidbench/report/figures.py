@@ -20,7 +20,7 @@ import numpy as np
 
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import ReportData, task_label
-from rigidbench.report.tables import DISPLAY_SCALE, metric_label
+from rigidbench.report.tables import display_scale, metric_label
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ def metric_intervals(data: ReportData, out_dir: Path) -> FigureFile:
     y = np.arange(n_models)
     for k, metric in enumerate(t.metrics):
         ax = axes.flat[k]
-        scale = DISPLAY_SCALE.get(metric, 1.0)
+        scale = display_scale(metric)
         mean = o.mean[:, k] * scale
         err = _errors(mean, o.lo[:, k] * scale, o.hi[:, k] * scale)
         for m in range(n_models):

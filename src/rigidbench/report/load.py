@@ -17,15 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from rigidbench.errors import ReportError
 from rigidbench.metrics import METRICS
 
 log = logging.getLogger(__name__)
 
-METRIC_NAMES: tuple[str, ...] = tuple(METRICS)
-
-
-class ReportError(Exception):
-    """A run directory cannot be reported on; the message names it and what to do."""
 
 
 @dataclass(frozen=True)
@@ -172,14 +168,15 @@ def load_runs(run_dirs) -> ScoreTable:
                 raise ReportError(
                     f"{info.path}: example {sample_id} is {rec['task']}/{rec['partition']} here but "
                     f"{tasks[j]}/{partitions[j]} in {infos[0].path}; the runs were scored on different data")
-    scores = np.full((len(infos), len(shared), len(METRIC_NAMES)), np.nan)
-    skipped = np.zeros((len(infos), len(METRIC_NAMES)), dtype=bool)
+    metric_names = tuple(METRICS)  # the registry at call time: a metric registered later is reported too
+    scores = np.full((len(infos), len(shared), len(metric_names)), np.nan)
+    skipped = np.zeros((len(infos), len(metric_names)), dtype=bool)
     for m, (info, (_, records)) in enumerate(zip(infos, loaded)):
         for j, sample_id in enumerate(shared):
             stored = records[sample_id]["metrics"]
-            scores[m, j] = [_score(stored.get(name)) for name in METRIC_NAMES]
-        for k, name in enumerate(METRIC_NAMES):
+            scores[m, j] = [_score(stored.get(name)) for name in metric_names]
+        for k, name in enumerate(metric_names):
             # Skipped = not computed on any shared example (a missing network), not merely non-finite.
             skipped[m, k] = bool(np.isnan(scores[m, :, k]).all()) and (
                 name in info.skipped_metrics or all(name in records[i].get("skipped", {}) for i in shared))
-    return ScoreTable(tuple(infos), tuple(shared), tasks, partitions, METRIC_NAMES, scores, skipped, tuple(notes))
+    return ScoreTable(tuple(infos), tuple(shared), tasks, partitions, metric_names, scores, skipped, tuple(notes))

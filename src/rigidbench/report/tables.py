@@ -17,13 +17,28 @@ from pathlib import Path
 
 import numpy as np
 
-from rigidbench.metrics import METRICS
+from rigidbench.metrics import GROUPS, METRICS
 from rigidbench.report.analysis import ReportData, partition_label, rank_marks, task_label
 
 # Display-only scale factors (the paper prints BGDrift x 10^3); CSV files stay unscaled.
-DISPLAY_SCALE = {"bgdrift": 1e3}
 # The paper's two column groups of the model table: six object measurements, four image measurements.
-METRIC_GROUPS = (("Object motion and geometry", 6), ("Visual similarity and stability", 4))
+_SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
+
+
+def metric_groups(metrics: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
+    """(heading, number of columns) for each run of consecutive metrics of one registry group."""
+    groups: list[list] = []
+    for m in metrics:
+        heading = GROUPS.get(METRICS[m].group, METRICS[m].group)
+        if groups and groups[-1][0] == heading:
+            groups[-1][1] += 1
+        else:
+            groups.append([heading, 1])
+    return tuple((h, n) for h, n in groups)
+
+
+def display_scale(metric: str) -> float:
+    return METRICS[metric].display_scale
 
 
 @dataclass(frozen=True)
@@ -83,8 +98,11 @@ def interval_text(lo: float, hi: float, decimals: int, signed: bool = False) -> 
 
 def metric_label(metric: str) -> str:
     """Display name with its display scale, e.g. 'BGDrift×10³'."""
-    name = METRICS[metric].display_name
-    return name + "\u00d710\u00b3" if DISPLAY_SCALE.get(metric) == 1e3 else name
+    info = METRICS[metric]
+    if info.display_scale == 1.0:
+        return info.display_name
+    power = round(math.log10(info.display_scale))
+    return f"{info.display_name}\u00d710{str(power).translate(_SUPERSCRIPT)}"
 
 
 def metric_arrow(metric: str) -> str:
@@ -113,7 +131,7 @@ def model_table(data: ReportData) -> Table:
     rows = []
     columns = []
     for k, metric in enumerate(t.metrics):
-        scale = DISPLAY_SCALE.get(metric, 1.0)
+        scale = display_scale(metric)
         decimals = decimals_for(data.overall.mean[:, k] * scale)
         marks = rank_marks(data.overall.mean[:, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
         columns.append([value_cell(data.overall.mean[m, k], data.overall.lo[m, k], data.overall.hi[m, k],
@@ -126,9 +144,10 @@ def model_table(data: ReportData) -> Table:
                f"({data.resamples:,} resamples over examples), omitting non-finite measurements; "
                "n=... gives the finite count where some were non-finite. Best and second-best values per "
                "metric are bold and underlined (arrows give the better direction)."
-               + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else "")
+               + "".join(f" {METRICS[m].display_name} is multiplied by {METRICS[m].display_scale:g}."
+                         for m in t.metrics if METRICS[m].display_scale != 1.0)
                + (f" {', '.join(unranked)} is shown for comparison and not ranked." if unranked else ""))
-    groups = METRIC_GROUPS if t.metrics == tuple(METRICS) else ()
+    groups = metric_groups(t.metrics)
     return Table("model_metrics", "Model comparison", caption, ("Model",) + tuple(metric_label(m) for m in t.metrics),
                  ("",) + tuple(metric_arrow(m) for m in t.metrics), tuple(rows), groups=groups)
 
@@ -160,7 +179,7 @@ def partition_table(data: ReportData) -> Table:
     """(partition, model) x ten metrics: means only (intervals in the CSV), marks within each partition."""
     t = data.table
     iv = data.by_partition
-    decimals = [decimals_for(iv.mean[:, :, k] * DISPLAY_SCALE.get(metric, 1.0)) for k, metric in enumerate(t.metrics)]
+    decimals = [decimals_for(iv.mean[:, :, k] * display_scale(metric)) for k, metric in enumerate(t.metrics)]
     rows, breaks = [], []
     for g, part in enumerate(data.partitions):
         n = int(np.sum(t.partitions == part))
@@ -170,7 +189,7 @@ def partition_table(data: ReportData) -> Table:
         for m, model in enumerate(t.models):
             cells = tuple(value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k], int(iv.n_finite[m, g, k]), n,
                                      decimals[k], marks[k][m], bool(t.skipped[m, k]), with_interval=False,
-                                     scale=DISPLAY_SCALE.get(metric, 1.0))
+                                     scale=display_scale(metric))
                           for k, metric in enumerate(t.metrics))
             label = f"{partition_label(part)} ({n})" if m == 0 else ""
             rows.append((Cell(label), Cell(model)) + cells)
@@ -196,7 +215,7 @@ def paired_table(data: ReportData) -> Table | None:
     for m in others:
         breaks.append(len(rows))
         for k, metric in enumerate(t.metrics):
-            scale = DISPLAY_SCALE.get(metric, 1.0)
+            scale = display_scale(metric)
             if t.skipped[m, k] or t.skipped[data.baseline, k]:
                 cells = (Cell("skipped"), Cell(""), Cell("skipped"), Cell(""), Cell("0"))
             else:
@@ -213,7 +232,8 @@ def paired_table(data: ReportData) -> Table | None:
                f"one half), each with a paired 95% bootstrap interval ({data.resamples:,} resamples). Positive "
                "changes are better for IoU and SSIM, negative for every other metric; bold entries have an "
                "interval that excludes 0 (change) or 0.5 (PoI). n counts the examples finite for both models."
-               + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
+               + "".join(f" {METRICS[m].display_name} is multiplied by {METRICS[m].display_scale:g}."
+                         for m in t.metrics if METRICS[m].display_scale != 1.0))
     return Table("paired_changes", f"Paired changes against {base}", caption,
                  ("Model", "Metric", f"Δ vs {base}", "95% CI", "PoI", "95% CI", "n"),
                  ("",) * 7, tuple(rows), n_label_columns=2, row_breaks=tuple(breaks[1:]))

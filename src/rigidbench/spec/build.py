@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import SpecError
 from ..config import ObjectConfig, Registry, TaskStep
 from . import cluster as cluster_ops
 from . import footprint
@@ -32,10 +33,6 @@ from .types import Body, BodyPhysics, RampShape, SceneSpec, SimSpec, SupportSpec
 PLACEMENT_CLEARANCE_M = 0.001  # gap left between a placed object and the surface below it
 MAX_LAYOUT_ATTEMPTS = 20
 RAMP_START_FRACTION = 0.25  # objects start a quarter of the way down the slope
-
-
-class SpecError(ValueError):
-    """A manifest row cannot be turned into a scene (e.g. the task does not fit the support)."""
 
 
 def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..metrics.background import bgdrift
+
 MOTIONS = ("translation", "jitter")
 N_CORNERS = 200
 N_FRAMES = 49
@@ -45,8 +47,6 @@ def motion_sweep(magnitudes_px: np.ndarray, trials: int, seed: int, n_corners: i
                  n_frames: int = N_FRAMES, size_wh: tuple[int, int] = IMAGE_SIZE_WH) -> dict[str, np.ndarray]:
     """Returns {"<motion>/bgdrift", "<motion>/displacement"}: (len(magnitudes_px), trials) float, BGDrift
     (real metric, 1/H units) and the raw mean displacement / H of the same tracks."""
-    from ..metrics.background import bgdrift
-
     rng = np.random.default_rng(seed)
     height = size_wh[1]
     out = {f"{m}/{k}": np.full((len(magnitudes_px), trials), np.nan)

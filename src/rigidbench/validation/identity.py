@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..metrics.identity import PATCH_SIZE_PX, extract_patches, patch_is_valid
+from ..metrics.identity import PATCH_SIZE_PX, extract_patches, iddrift, patch_is_valid
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +57,6 @@ def mosaic(patches: np.ndarray, columns: int = MOSAIC_COLUMNS) -> tuple[np.ndarr
 def patch_iddrift(ref_patches: np.ndarray, gen_patches: np.ndarray, feature_fn: Callable) -> float:
     """ref_patches, gen_patches: (M,64,64,3) uint8. Returns IdDrift (metrics.identity.iddrift) of the
     pairs, each patch its own actor, so the value is 1 - the mean patch cosine similarity."""
-    from ..metrics.identity import iddrift
-
     ref_image, centres = mosaic(ref_patches)
     gen_image, _ = mosaic(gen_patches)
     ref_clip = np.stack([ref_image, ref_image])
@@ -89,6 +87,17 @@ def swap_vs_gamma(patches: np.ndarray, donors: np.ndarray, severities: np.ndarra
                 if feature_fn is not None:
                     out[f"{change}/iddrift"][i, trial] = patch_iddrift(patches, gen, feature_fn)
     return out
+
+
+def square_patch(frame: np.ndarray, centres_xy: np.ndarray, size: int = PATCH_SIZE_PX) -> list[np.ndarray]:
+    """frame (H,W,3) uint8, centres (M,2) px with valid patches. Returns M (size,size,3) uint8 patches: the
+    part inside the image (``metrics.identity.extract_patches``), resized to size x size where the border
+    cut it (the metric resizes every crop to the network's input anyway), so patches can be tiled."""
+    import cv2
+
+    return [crop if crop.shape[:2] == (size, size) else
+            cv2.resize(np.ascontiguousarray(crop), (size, size), interpolation=cv2.INTER_LINEAR)
+            for crop in extract_patches(frame, centres_xy, size)]
 
 
 def frame0_candidates(sample) -> list[tuple[str, np.ndarray]]:
@@ -131,20 +140,20 @@ def collect_patches(samples: list, n_patches: int, rng: np.random.Generator) -> 
         for g in order:  # round-robin over actors, so each actor gives about as many patches
             if pools[g] and len(picks) < n_patches:
                 picks.append((int(g), groups[g][2][pools[g].pop()]))
-    patches = np.stack([extract_patches(frames0[groups[g][0]], centre[None])[0] for g, centre in picks])
+    patches = np.stack([square_patch(frames0[groups[g][0]], centre[None])[0] for g, centre in picks])
     if len(groups) > 1:
         donors = []
         for g, _ in picks:
             other = int(rng.choice([k for k in range(len(groups)) if k != g]))
             centres = groups[other][2]
-            donors.append(extract_patches(frames0[groups[other][0]], centres[rng.integers(len(centres))][None])[0])
+            donors.append(square_patch(frames0[groups[other][0]], centres[rng.integers(len(centres))][None])[0])
         note = f"donors: patches of another actor ({len(groups)} actors in {len(samples)} examples)"
     else:
         sample = samples[0]
         masks0 = sample.masks[0][sample.active_indices]
         centres = background_centres(masks0)
         chosen = centres[rng.integers(len(centres), size=len(picks))]
-        donors = [extract_patches(frames0[sample.sample_id], c[None])[0] for c in chosen]
+        donors = [square_patch(frames0[sample.sample_id], c[None])[0] for c in chosen]
         note = "donors: background patches of frame 0 (only one actor available to swap with)"
         log.info("only one actor in the validation examples; identity swaps use background patches")
     return patches, np.stack(donors), note

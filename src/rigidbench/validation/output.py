@@ -9,9 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
-DISPLAY = {"iou": "IoU", "centroid_l2": "L2", "chamfer": "Chamfer", "ate": "ATE", "ate3d": "ATE-3D",
-           "si_mse": "SI-MSE", "ssim": "SSIM", "lpips": "LPIPS", "iddrift": "IdDrift", "bgdrift": "BGDrift",
-           "pixel_l2": "pixel L2", "displacement": "raw displacement"}
+from ..metrics import METRICS
+
+#: the validation's own quantities that are not metrics
+EXTRA_DISPLAY = {"pixel_l2": "pixel L2", "displacement": "raw displacement"}
+
+
+def display(name: str) -> str:
+    """Display name of a metric (its registry entry) or of a validation quantity."""
+    return METRICS[name].display_name if name in METRICS else EXTRA_DISPLAY.get(name, name)
 EXPERIMENTS = {"ate3d_ray": "ATE-3D: equal 3D offsets along vs across the viewing ray",
                "bgdrift_motion": "BGDrift: coherent translation vs independent jitter (matched displacement)",
                "iddrift_swap": "IdDrift: identity swap vs gamma change, with pixel L2",
@@ -101,7 +107,7 @@ def experiment_table(rows: list[Row], experiment: str) -> list[str]:
     columns = list(dict.fromkeys((r.metric, r.condition, r.mode) for r in mine))
     severities = sorted({r.severity for r in mine})
     unit = mine[0].severity_unit
-    head = [f"{unit}"] + [f"{DISPLAY.get(m, m)} {c}" + (f" ({mode})" if mode and experiment == "metric_curve"
+    head = [f"{unit}"] + [f"{display(m)} {c}" + (f" ({mode})" if mode and experiment == "metric_curve"
                                                          else "") for m, c, mode in columns]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     index = {(r.metric, r.condition, r.mode, r.severity): r for r in mine}
@@ -123,7 +129,7 @@ def write_markdown(rows: list[Row], summary: dict, path: Path) -> Path:
     if curves:
         lines += ["## Which failure mode drove each curve", "", "| metric | failure mode | role | note |",
                   "|---|---|---|---|"]
-        lines += [f"| {DISPLAY.get(c['metric'], c['metric'])} | {c['mode']} | {c['role']} | {c['note']} |"
+        lines += [f"| {display(c['metric'])} | {c['mode']} | {c['role']} | {c['note']} |"
                   for c in curves] + [""]
     if summary["skipped"]:
         lines += ["## Skipped", ""] + [f"- {name}: {reason}" for name, reason in summary["skipped"].items()] + [""]
@@ -189,18 +195,16 @@ def write_figure(rows: list[Row], skipped: dict[str, str], out_stem: Path) -> tu
         _skip_panel(top[3], "IdDrift: swap vs gamma", skipped.get("iddrift", "no feature network"))
     _plot_curves(top[4], [(c, select(rows, experiment="iddrift_swap", metric="pixel_l2", condition=c))
                           for c in ("swap", "gamma")], "severity q", "pixel L2 (RMS, [0,1])", "pixel L2: swap vs gamma")
-    from ..evaluate import METRICS
-
     for ax, metric in zip(axes[1:].ravel(), METRICS):
         mine = [r for r in rows if r.experiment == "metric_curve" and r.metric == metric]
-        title = f"{DISPLAY[metric]}"
+        title = display(metric)
         if not mine or all(r.n == 0 for r in mine):
             reason = next((r.note for r in mine if r.note), skipped.get(metric, "no usable failure mode"))
             _skip_panel(ax, title, reason.removeprefix("skipped: "))
             continue
         modes = list(dict.fromkeys(r.mode for r in mine))
         _plot_curves(ax, [(m, select(rows, experiment="metric_curve", metric=metric, mode=m)) for m in modes],
-                     "severity", DISPLAY[metric], f"{title} ({', '.join(modes)})")
+                     "severity", display(metric), f"{title} ({', '.join(modes)})")
     png, pdf = out_stem.with_suffix(".png"), out_stem.with_suffix(".pdf")
     fig.savefig(png, dpi=120)
     fig.savefig(pdf)

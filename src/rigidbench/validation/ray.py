@@ -23,6 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..evaluation.scoring import tracked_points_world
+from ..metrics import depth as depth_metrics, masks as mask_metrics, tracks as track_metrics
+from ..metrics.common import project
+from ..perception.gt import disparity_from_depth, reference_state
+
 DIRECTIONS = ("along", "across")
 
 
@@ -49,9 +54,6 @@ class RayScene:
 
 def scene_from_sample(sample) -> RayScene:
     """The reference bundle's gt world state (perception.gt.reference_state) as a RayScene."""
-    from ..evaluate import tracked_points_world
-    from ..perception.gt import reference_state
-
     state = reference_state(sample)
     n = state.masks.shape[0]
     return RayScene(masks=state.masks.astype(bool), depth_m=np.asarray(state.depth_m, np.float32),
@@ -81,8 +83,6 @@ def projected_offsets(positions_m: np.ndarray, directions: np.ndarray, offset_m:
                       camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """positions_m, directions: (A,T,3). Returns the image shift (A,T,2) px and camera-depth change
     (A,T) m of each position moved by offset_m along its direction."""
-    from ..metrics.common import project
-
     c2w = np.asarray(camera_to_world, np.float64)
     flat = np.asarray(positions_m, np.float64).reshape(-1, 3)
     moved = flat + offset_m * np.asarray(directions, np.float64).reshape(-1, 3)
@@ -151,11 +151,6 @@ def ray_metrics(scene: RayScene, masks: np.ndarray, depth_m: np.ndarray, tracks:
                 visibility: np.ndarray) -> dict[str, float]:
     """Generated arrays as returned by perturb_scene. Returns {"ate3d", "ate", "iou"} scored against
     the scene with the evaluator's arguments (disparity = 1/depth, ref_points_m = tracked points)."""
-    from ..metrics import depth as depth_metrics
-    from ..metrics import masks as mask_metrics
-    from ..metrics import tracks as track_metrics
-    from ..perception.gt import disparity_from_depth
-
     c2w = np.asarray(scene.camera_to_world, np.float64)
     ate3d = depth_metrics.ate3d(tracks, scene.visibility, visibility, scene.actor_index,
                                 disparity_from_depth(depth_m), scene.depth_m, scene.K, c2w[:3, :3], c2w[:3, 3],

@@ -11,8 +11,17 @@ from typing import Callable
 
 import numpy as np
 
-from ..evaluate import METRICS
-from .output import Row, curve_rows, mean_se, skipped_rows
+from ..errors import UserError
+from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..metrics import METRICS
+from ..perception.features import FeatureNets, load_feature_nets
+from ..predictors import PREDICTORS
+from .background import MOTIONS, motion_sweep
+from .curves import RENDERED_MODES, curve_plan, mode_sweep
+from .identity import CHANGES, collect_patches, swap_vs_gamma
+from .output import (Row, curve_rows, display, mean_se, select, skipped_rows, write_csv, write_figure,
+                     write_markdown)
+from .ray import DIRECTIONS, ray_sweep, scene_from_sample, slope_through_origin
 
 log = logging.getLogger(__name__)
 
@@ -25,10 +34,7 @@ TABLE_STEM = "metric_validation"
 def choose_examples(data_dir: Path, n_examples: int) -> list:
     """Up to n_examples reference Samples from data_dir, split evenly between free fall and ramp
     collision where the data has them, the rest filled from other tasks in id order."""
-    from ..evaluate import reference_dirs
-    from ..groundtruth.bundle import Sample
-
-    samples = [Sample(p) for p in reference_dirs(Path(data_dir))]
+    samples = [Sample(p) for p in bundle_dirs(resolve_split_dir(data_dir))]
     if not samples:
         raise ValueError(f"{data_dir}: no rendered examples; render some with "
                          "`rigidbench render --split eval --quality preview --limit 10 --data ...`")
@@ -45,8 +51,6 @@ def choose_examples(data_dir: Path, n_examples: int) -> list:
 
 def ray_rows(samples: list, n_levels: int) -> tuple[list[Row], dict[str, float]]:
     """ATE-3D / 2D ATE / IoU along vs across the viewing ray, offsets 0..0.5 m."""
-    from .ray import DIRECTIONS, ray_sweep, scene_from_sample, slope_through_origin
-
     offsets = np.linspace(0.0, MAX_OFFSET_M, n_levels)
     sweep = ray_sweep([scene_from_sample(s) for s in samples], offsets)
     rows = [r for d in DIRECTIONS for m in ("ate3d", "ate", "iou")
@@ -63,8 +67,6 @@ def ray_rows(samples: list, n_levels: int) -> tuple[list[Row], dict[str, float]]
 
 def background_rows(n_levels: int, trials: int, seed: int) -> tuple[list[Row], dict[str, float]]:
     """BGDrift and raw displacement under translation vs jitter, 0..40 px."""
-    from .background import MOTIONS, motion_sweep
-
     magnitudes = np.linspace(0.0, MAX_BG_DISPLACEMENT_PX, n_levels)
     sweep = motion_sweep(magnitudes, trials, seed)
     rows = [r for c in MOTIONS for m in ("bgdrift", "displacement")
@@ -77,8 +79,6 @@ def background_rows(n_levels: int, trials: int, seed: int) -> tuple[list[Row], d
 def identity_rows(samples: list, n_levels: int, trials: int, n_patches: int, seed: int,
                   feature_fn: Callable | None, skip_reason: str) -> tuple[list[Row], dict[str, float], str]:
     """IdDrift (when feature_fn is given) and pixel L2 under swap vs gamma, q = 0..1."""
-    from .identity import CHANGES, collect_patches, swap_vs_gamma
-
     severities = np.linspace(0.0, 1.0, n_levels)
     patches, donors, note = collect_patches(samples, n_patches, np.random.default_rng(seed))
     sweep = swap_vs_gamma(patches, donors, severities, trials, seed, feature_fn)
@@ -103,11 +103,8 @@ def identity_rows(samples: list, n_levels: int, trials: int, n_patches: int, see
 def curve_section(samples: list, n_levels: int, nets, with_rendered: bool, progress: bool
                   ) -> tuple[list[Row], list[dict], dict[str, str]]:
     """One curve per metric (and the control curves) from the failure-mode suite with gt perception."""
-    from ..models.failure_modes import FAILURE_MODES
-    from .curves import RENDERED_MODES, curve_plan, mode_sweep
-
     severities = np.linspace(0.0, 1.0, n_levels)
-    plan = curve_plan(set(FAILURE_MODES), with_rendered)
+    plan = curve_plan(set(PREDICTORS), with_rendered)
     skipped = {m: nets.skipped.get(m, "its feature network was not given")
                for m, net in (("lpips", nets.lpips), ("iddrift", nets.identity)) if net is None}
     # A mode only needed for skipped measurements is not run (the rendered ones take minutes).
@@ -136,14 +133,12 @@ def curve_section(samples: list, n_levels: int, nets, with_rendered: bool, progr
 
 def curve_summary(rows: list[Row]) -> list[str]:
     """One line per main curve: value at severity 0 and at the highest severity."""
-    from .output import DISPLAY, select
-
     lines = []
     for metric in METRICS:
         mine = select(rows, experiment="metric_curve", metric=metric, condition="main")
         finite = [r for r in mine if r.n > 0]
         if len(finite) >= 2:
-            lines.append(f"{DISPLAY[metric]} under {finite[0].mode}: {finite[0].mean:.4g} at severity "
+            lines.append(f"{display(metric)} under {finite[0].mode}: {finite[0].mean:.4g} at severity "
                          f"{finite[0].severity:g} -> {finite[-1].mean:.4g} at {finite[-1].severity:g}")
     return lines
 
@@ -152,12 +147,9 @@ def validate_metrics(data_dir: str | Path, out_dir: str | Path, *, examples: int
                      seed: int = 0, with_rendered: bool = False, nets=None, feature_fn: Callable | None = None,
                      trials: int = 20, bg_trials: int = 10, n_patches: int = 10, progress: bool = True) -> Path:
     """Run the metric validation on up to `examples` reference examples of data_dir with `severities`
-    levels per sweep; `nets` defaults to evaluate.load_feature_nets(), `feature_fn` (B,3,224,224) ->
+    levels per sweep; `nets` defaults to perception.features.load_feature_nets(), `feature_fn` (B,3,224,224) ->
     (B,D) replaces its identity network. Writes metric_validation.{csv,md,png,pdf} and summary.json
     into out_dir and returns out_dir."""
-    from ..evaluate import FeatureNets, load_feature_nets
-    from .output import write_csv, write_figure, write_markdown
-
     if severities < 2:
         raise ValueError(f"need at least 2 severity levels (0 and the strongest), got {severities}")
     data_dir, out_dir = Path(data_dir), Path(out_dir)
@@ -229,17 +221,13 @@ def _json_safe(x):
     return x
 
 
-def cmd_validate_metrics(args) -> int:
+def cmd_validate_metrics(args, ctx=None) -> int:
     """CLI: rigidbench validate-metrics --data DIR --out DIR [--examples N] [--severities K] [--seed S]
     [--with-rendered]."""
-    from ..groundtruth.bundle import BundleError
-
     try:
-        out = validate_metrics(args.data, args.out, examples=args.examples, severities=args.severities,
+        out = validate_metrics(resolve_split_dir(args.data, args.split), args.out, examples=args.examples, severities=args.severities,
                                seed=args.seed, with_rendered=getattr(args, "with_rendered", False))
-    except (BundleError, ValueError) as exc:
-        from ..cli import UserError
-
+    except ValueError as exc:  # an option out of range (BundleError, a RigidBenchError, reaches the CLI as is)
         raise UserError(str(exc)) from None
     summary = json.loads((out / "summary.json").read_text())
     print(f"metric validation on {len(summary['examples'])} examples: {', '.join(summary['examples'])}")

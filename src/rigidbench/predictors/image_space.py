@@ -1,7 +1,7 @@
-"""The failure-mode suite: predictions made by changing one known thing about the reference.
+"""Image-space failure modes: predictions made from the reference's own frames, in milliseconds.
 
-Each predictor maps a reference ``Sample`` and a severity in [0, 1] (0 = the reference itself)
-to a ``Prediction``: the frames, their timestamps and the exact ``WorldState`` they depict, so
+Each maps a reference ``Sample`` and a severity in [0, 1] (0 = the reference itself) to a
+``Prediction``: the frames, their timestamps and the exact ``WorldState`` they depict, so
 ``--perception gt`` can score them without any learned model.
 
 - time: ``static`` (motion frozen at the first frame), ``slow`` / ``fast`` playback, ``delayed``
@@ -12,27 +12,19 @@ to a ``Prediction``: the frames, their timestamps and the exact ``WorldState`` t
 - appearance: ``gamma`` (gamma 1 + 1.5 s, as in the paper's IdDrift check);
 - ``reference``: the reference, losslessly re-encoded.
 
-Re-simulated and re-rendered with Blender (bpy needed; one render per example at the reference's
-own preset), each with its severity scale documented in its module:
-
-- ``identity-swap`` (``identity_swap``): actors dressed in another object's materials, blended into
-  the actor pixels with weight s from frame 1 on;
-- ``gravity``, ``restitution``, ``friction``, ``mass`` (``counterfactuals``): one physical quantity
-  changed, the example simulated again;
-- ``depth-offset`` (``counterfactuals``): actors rendered up to 0.5 m nearer the camera along their
-  viewing rays.
+The failure modes that re-simulate and re-render with Blender live in ``counterfactuals``
+(physics and depth offset) and ``identity_swap``; all are registered in ``predictors.PREDICTORS``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from ..perception.gt import WorldState, static_background
-from . import counterfactuals, identity_swap
+from ..video import interpolate_nearest
+from .base import Prediction
 
 MAX_DELAY_S = 0.5
 SHAKE_AMPLITUDE = 0.03  # fraction of image height at severity 1
@@ -40,13 +32,6 @@ SHAKE_ROTATION_DEG = 1.5
 DRIFT_FRACTION = 0.15  # fraction of image width panned over the clip at severity 1
 WOBBLE_AMPLITUDE = 0.02  # fraction of image height at severity 1
 WOBBLE_GRID = (12, 20)  # (rows, cols) of the coarse displacement grid stored in the state
-
-
-@dataclass
-class Prediction:
-    frames: np.ndarray  # (T,H,W,3) uint8
-    times_s: np.ndarray  # (T,)
-    state: WorldState
 
 
 def _reference(sample):
@@ -65,8 +50,6 @@ def time_remap(sample, shown_s: np.ndarray) -> Prediction:
 
     Frames are repeated or dropped, never blended, so every pixel and every state array (masks,
     depth, tracks, visibility) depicts the same rendered instant exactly."""
-    from ..video import interpolate_nearest
-
     frames, masks, depth, tracks, vis = _reference(sample)
     src = _times(sample)
     shown = np.clip(np.asarray(shown_s, np.float64), 0.0, src[-1])
@@ -193,29 +176,3 @@ def background_wobble(sample, severity: float) -> Prediction:
 
 def sample_seed(sample) -> int:
     return int(sample.metadata.get("seed", 0))
-
-
-FAILURE_MODES: dict[str, Callable] = {
-    "reference": reference, "static": static, "slow": slow, "fast": fast, "delayed": delayed, "gamma": gamma,
-    "camera-shake": camera_shake, "camera-drift": camera_drift, "background-wobble": background_wobble,
-    "identity-swap": identity_swap.identity_swap, "gravity": counterfactuals.gravity,
-    "restitution": counterfactuals.restitution, "friction": counterfactuals.friction, "mass": counterfactuals.mass,
-    "depth-offset": counterfactuals.depth_offset,
-}
-
-
-def write_prediction(pred: Prediction, out_dir, sample_id: str, fps: float) -> None:
-    """Write ``<id>.state.npz`` then ``<id>.mp4`` (lossless H.264 RGB), each via a temporary file, so an
-    existing video always has its complete state beside it."""
-    from pathlib import Path
-
-    from ..perception.gt import state_path
-    from ..video import write_video
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    video = out_dir / f"{sample_id}.mp4"
-    pred.state.save(state_path(video))  # atomic
-    tmp_video = out_dir / f".{sample_id}.partial.mp4"  # hidden: validate and evaluate ignore it
-    write_video(tmp_video, pred.frames, fps=fps, lossless=True)
-    tmp_video.replace(video)

@@ -48,7 +48,17 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from ..blender.overrides import RenderOverrides
+from ..config import Registry, registry as packaged_registry
+from ..errors import BundleError, PredictionError
+from ..groundtruth.bundle import Sample
+from ..groundtruth.camera_model import project
+from ..groundtruth.contacts import quat_to_matrix
+from ..groundtruth.tracks import carry, visibility
 from ..perception.gt import WorldState, static_background
+from ..pipeline.render import render_spec
+from ..spec.types import BodyPhysics
+from .base import Prediction
 
 log = logging.getLogger(__name__)
 
@@ -57,18 +67,12 @@ MAX_MASS_FACTOR = 5.0  # alternate actors x (1 + 4 s) and / (1 + 4 s)
 MAX_DEPTH_OFFSET_M = 0.5  # along the viewing ray, toward the camera, at s = 1
 
 
-class CounterfactualError(ValueError):
-    """A counterfactual could not be simulated or rendered; the message names the example and why."""
-
-
 # -- what changes (pure: SceneSpec and Registry in, SceneSpec and Registry out) ---------------------
 
 
 def _with_body_physics(spec, registry, change: Callable) -> tuple:
     """Apply ``change(BodyPhysics) -> BodyPhysics`` to every body, the support and the floor (whose
     physics the simulator takes from ``registry.sim``)."""
-    from ..spec.types import BodyPhysics
-
     bodies = tuple(dataclasses.replace(b, physics=change(b.physics)) for b in spec.bodies)
     support = dataclasses.replace(spec.support, physics=change(spec.support.physics))
     floor = change(BodyPhysics(0.0, registry.sim.passive_friction, registry.sim.passive_restitution))
@@ -137,34 +141,31 @@ def _blender_output_silenced() -> Iterator[None]:
 
 def render_counterfactual(sample, spec, registry, out_dir: str | Path, overrides=None) -> Path:
     """Simulate and render ``spec`` like the reference ``sample`` (its preset, device kind and camera)
-    into the new bundle directory ``out_dir``; returns it. Raises CounterfactualError naming the example."""
-    from ..groundtruth.bundle import BundleError, Sample
-    from ..pipeline.render import render_spec
-
+    into the new bundle directory ``out_dir``; returns it. Raises PredictionError naming the example."""
     ref_id = sample.sample_id
     preset_name = sample.metadata.get("preset")
     try:
         preset = registry.preset(preset_name)
     except KeyError:
-        raise CounterfactualError(f"example {ref_id}: its render preset '{preset_name}' is not configured here; "
+        raise PredictionError(f"example {ref_id}: its render preset '{preset_name}' is not configured here; "
                                   "re-render the reference with `rigidbench render`") from None
     if tuple(preset.resolution) != sample.resolution:
-        raise CounterfactualError(f"example {ref_id}: rendered at {sample.resolution} but preset '{preset_name}' is "
+        raise PredictionError(f"example {ref_id}: rendered at {sample.resolution} but preset '{preset_name}' is "
                                   f"{tuple(preset.resolution)} here; re-render the reference with this configuration")
     if spec.camera is None:
-        raise CounterfactualError(f"example {ref_id}: {sample.path / 'scene_spec.json'} has no camera; re-render "
+        raise PredictionError(f"example {ref_id}: {sample.path / 'scene_spec.json'} has no camera; re-render "
                                   "the reference with `rigidbench render`")
     device = "cpu" if sample.metadata.get("render", {}).get("device_kind", "CPU") == "CPU" else "auto"
     try:
         with _blender_output_silenced():
             path = render_spec(spec, registry, preset, Path(out_dir), device=device, overrides=overrides)
     except (RuntimeError, BundleError) as exc:
-        raise CounterfactualError(f"example {ref_id}: the counterfactual render failed: {exc}") from exc
+        raise PredictionError(f"example {ref_id}: the counterfactual render failed: {exc}") from exc
     except ImportError as exc:  # no bpy: this predictor cannot run here; say so per example
-        raise CounterfactualError(f"example {ref_id}: {exc}") from exc
+        raise PredictionError(f"example {ref_id}: {exc}") from exc
     cf = Sample(path)
     if cf.actor_names != sample.actor_names or cf.n_frames != sample.n_frames or cf.resolution != sample.resolution:
-        raise CounterfactualError(f"example {ref_id}: the counterfactual has actors {cf.actor_names}, "
+        raise PredictionError(f"example {ref_id}: the counterfactual has actors {cf.actor_names}, "
                                   f"{cf.n_frames} frames at {cf.resolution}; the reference {sample.actor_names}, "
                                   f"{sample.n_frames} frames at {sample.resolution}")
     return path
@@ -178,9 +179,6 @@ def carried_tracks(sample, rotations: np.ndarray, positions_m: np.ndarray, masks
     """The reference's GT query points (body frame) carried by other poses: rotations (N,T,3,3),
     positions_m (N,T,3) of all N actors; masks (T,N,H,W) bool and depth_m (T,H,W) of the clip that
     shows them. Returns tracks (P,T,2) float32 px and visibility (P,T) bool, in reference order."""
-    from ..groundtruth.camera_model import project
-    from ..groundtruth.tracks import carry, visibility
-
     tr = sample.tracks
     R_c, t_c = sample.camera_pose
     K = sample.K
@@ -199,9 +197,6 @@ def carried_tracks(sample, rotations: np.ndarray, positions_m: np.ndarray, masks
 def prediction_from_bundle(sample, cf, offsets_m: dict[str, np.ndarray] | None = None):
     """A ``Prediction`` showing counterfactual bundle ``cf`` of reference ``sample``; ``offsets_m``
     (actor name -> (T,3) m) are the render-time displacements ``cf`` was rendered with."""
-    from ..groundtruth.contacts import quat_to_matrix
-    from .failure_modes import Prediction
-
     T = cf.n_frames
     traj = cf.trajectory
     positions = traj.positions_m[:, :T].copy()
@@ -219,9 +214,6 @@ def prediction_from_bundle(sample, cf, offsets_m: dict[str, np.ndarray] | None =
 
 
 def _rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, offsets_m=None):
-    from ..blender.overrides import RenderOverrides
-    from ..groundtruth.bundle import Sample
-
     overrides = RenderOverrides(offsets_m=offsets_m) if offsets_m else None
     if bundle_dir is not None:
         path = render_counterfactual(sample, spec, registry, bundle_dir, overrides)
@@ -231,35 +223,34 @@ def _rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, 
         return prediction_from_bundle(sample, Sample(path), offsets_m)
 
 
-def physics_counterfactual(sample, change: str, severity: float, bundle_dir: str | Path | None = None):
-    """Re-simulate and re-render ``sample`` with PHYSICS_CHANGES[change] at ``severity``; returns a Prediction."""
-    from ..config import registry as load_registry
-
-    spec, reg = PHYSICS_CHANGES[change](sample.spec, load_registry(), float(severity))
+def physics_counterfactual(sample, change: str, severity: float, bundle_dir: str | Path | None = None,
+                           registry: Registry | None = None):
+    """Re-simulate and re-render ``sample`` with PHYSICS_CHANGES[change] at ``severity`` under ``registry``
+    (default: the packaged configuration); returns a Prediction."""
+    base = registry if registry is not None else packaged_registry()
+    spec, reg = PHYSICS_CHANGES[change](sample.spec, base, float(severity))
     log.info("example %s: rendering the %s counterfactual at severity %.3g", sample.sample_id, change, severity)
     return _rendered_prediction(sample, spec, reg, bundle_dir)
 
 
-def gravity(sample, severity: float, bundle_dir: str | Path | None = None):
-    return physics_counterfactual(sample, "gravity", severity, bundle_dir)
+def gravity(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
+    return physics_counterfactual(sample, "gravity", severity, bundle_dir, registry)
 
 
-def restitution(sample, severity: float, bundle_dir: str | Path | None = None):
-    return physics_counterfactual(sample, "restitution", severity, bundle_dir)
+def restitution(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
+    return physics_counterfactual(sample, "restitution", severity, bundle_dir, registry)
 
 
-def friction(sample, severity: float, bundle_dir: str | Path | None = None):
-    return physics_counterfactual(sample, "friction", severity, bundle_dir)
+def friction(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
+    return physics_counterfactual(sample, "friction", severity, bundle_dir, registry)
 
 
-def mass(sample, severity: float, bundle_dir: str | Path | None = None):
-    return physics_counterfactual(sample, "mass", severity, bundle_dir)
+def mass(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
+    return physics_counterfactual(sample, "mass", severity, bundle_dir, registry)
 
 
-def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None):
+def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
     """Every active actor rendered 0.5 s m nearer the camera along its viewing ray, at every frame."""
-    from ..config import registry as load_registry
-
     traj = sample.trajectory
     _, camera_m = sample.camera_pose
     active = sample.active_indices
@@ -267,10 +258,11 @@ def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None):
     offsets = {sample.actor_names[a]: shift[i] for i, a in enumerate(active)}
     log.info("example %s: rendering actors %.3g m nearer the camera", sample.sample_id,
              MAX_DEPTH_OFFSET_M * severity)
-    return _rendered_prediction(sample, sample.spec, load_registry(), bundle_dir, offsets)
+    reg = registry if registry is not None else packaged_registry()
+    return _rendered_prediction(sample, sample.spec, reg, bundle_dir, offsets)
 
 
-__all__ = ["CounterfactualError", "PHYSICS_CHANGES", "gravity_change", "restitution_change", "friction_change",
+__all__ = ["PHYSICS_CHANGES", "gravity_change", "restitution_change", "friction_change",
            "mass_change", "depth_offsets", "render_counterfactual", "carried_tracks", "prediction_from_bundle",
            "physics_counterfactual", "gravity", "restitution", "friction", "mass", "depth_offset",
            "MAX_GRAVITY_FACTOR", "MAX_MASS_FACTOR", "MAX_DEPTH_OFFSET_M"]

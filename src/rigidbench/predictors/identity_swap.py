@@ -21,6 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..blender.overrides import RenderOverrides
+from ..config import Registry, registry as packaged_registry
+from ..errors import PredictionError
+from ..groundtruth.bundle import Sample
+from .counterfactuals import render_counterfactual
+from .image_space import reference
+
 log = logging.getLogger(__name__)
 
 #: recipient object id -> donor object id (primary colours and patterns far apart).
@@ -60,8 +67,6 @@ def blend_inside_masks(reference: np.ndarray, swapped: np.ndarray, masks: np.nda
 
 def swapped_overrides(sample, registry):
     """RenderOverrides dressing each active actor of ``sample`` in its donor's materials."""
-    from ..blender.overrides import RenderOverrides
-
     bodies = {b.name: b for b in sample.spec.bodies}
     names = [sample.actor_names[a] for a in sample.active_indices]
     return RenderOverrides(materials_from={n: donor_for(bodies[n].asset, registry.objects) for n in names})
@@ -69,27 +74,19 @@ def swapped_overrides(sample, registry):
 
 def prediction_from_swapped(sample, swapped, severity: float):
     """A Prediction of reference ``sample`` blended with the rendered swapped bundle ``swapped`` at ``severity``."""
-    from .counterfactuals import CounterfactualError
-    from .failure_modes import reference
-
     if not np.array_equal(swapped.masks, sample.masks):
-        raise CounterfactualError(f"example {sample.sample_id}: the re-rendered actors do not cover the reference's "
+        raise PredictionError(f"example {sample.sample_id}: the re-rendered actors do not cover the reference's "
                                   "pixels (the re-simulation diverged); cannot swap appearance in place")
     pred = reference(sample, 0.0)
     pred.frames = blend_inside_masks(pred.frames, swapped.frames, pred.state.masks, float(severity))
     return pred
 
 
-def identity_swap(sample, severity: float, bundle_dir: str | Path | None = None):
+def identity_swap(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
     """Actors shown with their donors' appearance, blended in with weight ``severity`` from frame 1 on."""
-    from ..config import registry as load_registry
-    from ..groundtruth.bundle import Sample
-    from .counterfactuals import render_counterfactual
-    from .failure_modes import reference
-
     if severity == 0:
         return reference(sample, 0.0)
-    reg = load_registry()
+    reg = registry if registry is not None else packaged_registry()
     overrides = swapped_overrides(sample, reg)
     log.info("example %s: rendering actors with donor materials %s", sample.sample_id, dict(overrides.materials_from))
     if bundle_dir is not None:

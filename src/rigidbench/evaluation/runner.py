@@ -1,0 +1,180 @@
+"""The evaluate stage: every reference example's prediction perceived, aligned, scored and written."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import EXAMPLE_ERRORS, EvaluationError, UserError
+from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..metrics import METRICS
+from ..perception.base import Perception, get_backend
+from ..perception.features import FeatureNets, load_feature_nets
+from ..perception.gt import state_path
+from ..video import VIDEO_EXTENSIONS, align_video, read_video, reference_times, resize_frames
+from .aggregation import EVAL_SIZE, aggregate, why_not_official
+from .cache import file_hash, input_key, reference_hash, write_json
+from .provenance import run_info
+from .scoring import score_example
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvaluationSummary:
+    out_dir: Path
+    evaluated: list[str]
+    reused: list[str]
+    failed: dict[str, str]
+    skipped_metrics: dict[str, str]
+    official: bool
+    results: dict
+
+
+def find_prediction(pred_dir: Path, sample_id: str) -> Path | None:
+    """pred_dir/<id>.<ext> for the one video extension present (several: EvaluationError)."""
+    found = [pred_dir / f"{sample_id}{ext}" for ext in VIDEO_EXTENSIONS if (pred_dir / f"{sample_id}{ext}").exists()]
+    if len(found) > 1:
+        raise EvaluationError(f"{sample_id}: several predictions ({', '.join(p.name for p in found)}); keep one")
+    return found[0] if found else None
+
+
+def ready_backend(perception: str, options: dict | None = None):
+    """The perception backend, after checking it has every network weight it needs (EvaluationError
+    listing each missing one, where it was looked for and how to fetch it, before any work starts)."""
+    backend = get_backend(perception, **(options or {}))
+    missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
+    if missing:
+        raise EvaluationError(f"{backend.name} perception cannot run: " + "\n  ".join(missing)
+                              + "\n  (`rigidbench weights --list` shows every weight and where it is looked for)")
+    return backend
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
+             ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
+             model: str | None = None, progress: bool = True,
+             perception_options: dict | None = None) -> EvaluationSummary:
+    """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
+    holding one split); writes out/examples/<id>.json and .npz, out/results.json and out/run.json.
+
+    ``perception_options`` go to the backend's constructor (neural: depth_model, device, weights,
+    allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
+    ``out/cache/<backend>/``. A rerun reuses examples whose inputs are unchanged."""
+    pred_dir, out_dir = Path(pred_dir), Path(out_dir)
+    if not pred_dir.is_dir():
+        raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
+    data_dir = resolve_split_dir(data_dir)
+    model = model or pred_dir.name
+    refs = bundle_dirs(data_dir)
+    all_ids = [p.name for p in refs]
+    if ids:
+        unknown = sorted(set(ids) - set(all_ids))
+        if unknown:
+            raise UserError(f"unknown example id(s) {', '.join(unknown)} in {data_dir}")
+        refs = [p for p in refs if p.name in set(ids)]
+    refs = refs[:limit] if limit is not None else refs
+    metrics = tuple(METRICS)
+    backend = ready_backend(perception, perception_options)
+    if hasattr(backend, "use_cache_dir"):
+        backend.use_cache_dir(out_dir / "cache" / backend.name)
+    nets = nets if nets is not None else load_feature_nets()
+    (out_dir / "examples").mkdir(parents=True, exist_ok=True)
+    (out_dir / "cache").mkdir(exist_ok=True)
+    started = time.time()
+    evaluated, reused, failed, records = [], [], {}, []
+    timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
+    pred_hashes, ref_hashes = {}, {}
+    bar = tqdm(total=len(refs), unit="example", desc="evaluate", disable=not progress)
+    for ref_dir in refs:
+        sample_id = ref_dir.name
+        bar.set_postfix_str(sample_id)
+        try:
+            pred = find_prediction(pred_dir, sample_id)
+            if pred is None:
+                raise EvaluationError(f"{sample_id}: no prediction {sample_id}.mp4 (or .webm/.mov/...) in {pred_dir}")
+            state = state_path(pred)
+            pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")
+            ref_key = reference_hash(ref_dir)
+            pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
+            key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}", nets.key, metrics)
+            record_path = out_dir / "examples" / f"{sample_id}.json"
+            if record_path.exists():
+                old = json.loads(record_path.read_text())
+                if old.get("input_key") == key:
+                    records.append(old)
+                    reused.append(sample_id)
+                    bar.update(1)
+                    continue
+            record = _score_one(Sample(ref_dir), pred, backend, nets, model, key, out_dir, timings)
+            records.append(record)
+            evaluated.append(sample_id)
+        except EXAMPLE_ERRORS as exc:
+            failed[sample_id] = str(exc)
+            log.warning("example %s failed: %s", sample_id, exc)
+        bar.update(1)
+    bar.close()
+    complete_ids = {r["id"] for r in records}
+    missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
+    official = (len(all_ids) == EVAL_SIZE and complete_ids == set(all_ids) and not failed and not missing_metrics)
+    skipped = {m: nets.skipped.get(m, "not computed") for m in missing_metrics}
+    results = {"model": model, "perception": backend.name, "official": official, "metrics": list(metrics),
+               "n_examples": len(records), "n_reference": len(all_ids), "failed": failed,
+               "skipped_metrics": skipped, **aggregate(records, metrics)}
+    if not official:
+        results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics)
+    write_json(out_dir / "results.json", results)
+    write_json(out_dir / "run.json", run_info(model, pred_dir, data_dir, backend, nets, metrics, pred_hashes,
+                                              ref_hashes, timings, time.time() - started, evaluated, reused, failed))
+    return EvaluationSummary(out_dir, evaluated, reused, failed, skipped, official, results)
+
+
+def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, out_dir: Path,
+               timings: dict[str, float]) -> dict:
+    """Decode, perceive (cached by input key), align and score one example; writes its .npz and .json."""
+    sample_id = sample.sample_id
+    t0 = time.time()
+    ref_times = reference_times(sample.n_frames, sample.fps)
+    # Decode only up to the last reference time unless the backend needs every generated frame (neural:
+    # CoTracker3 offline and VDA see the whole clip, as in the published runs).
+    video = read_video(pred, until_s=None if getattr(backend, "whole_clip", True) else float(ref_times[-1]))
+    w, h = sample.resolution
+    if video.size != (w, h):
+        video.frames = resize_frames(video.frames, (w, h))
+    timings["decode_s"] += time.time() - t0
+    t0 = time.time()
+    cache = out_dir / "cache" / f"{sample_id}-{backend.name}-{key[:16]}.npz"
+    if cache.exists():
+        perceived = Perception.load(cache)
+    else:
+        perceived = backend.perceive(sample, video, pred)
+        for old_cache in (out_dir / "cache").glob(f"{sample_id}-{backend.name}-*.npz"):
+            old_cache.unlink()
+        perceived.save(cache)
+    timings["perception_s"] += time.time() - t0
+    aligned = perceived.aligned(ref_times)
+    gen_rgb = align_video(video, ref_times)
+    t0 = time.time()
+    scores = score_example(sample, gen_rgb, aligned, nets)
+    timings["metrics_s"] += time.time() - t0
+    record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
+              "frames_compared": int(gen_rgb.shape[0]), "input_key": key, "perception": backend.name,
+              "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
+              "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}
+    arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
+              if r is not None and r.per_frame is not None}
+    tmp = out_dir / "examples" / f"{sample_id}.tmp.npz"
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(out_dir / "examples" / f"{sample_id}.npz")
+    write_json(out_dir / "examples" / f"{sample_id}.json", record)
+    return record

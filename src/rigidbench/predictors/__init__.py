@@ -1,0 +1,62 @@
+"""Everything that makes a video from a reference example, behind one ``Predictor`` interface and
+one registry, ``PREDICTORS`` (``rigidbench predict --list`` prints it).
+
+Adding a predictor is one module plus one ``PREDICTORS.add(PredictorInfo(...))`` line here; a
+user's own model needs no registration at all: ``rigidbench predict mypackage.module:MyModel``
+loads any ``Predictor`` subclass or ``f(sample, ctx) -> Prediction`` function by its path.
+"""
+
+from __future__ import annotations
+
+from ..errors import UserError
+from ..registry import LazyRegistry
+from .base import (FailureMode, FunctionPredictor, Kind, ModelInputs, PredictContext, Prediction, Predictor, PredictorInfo,
+                   model_inputs)
+
+PREDICTORS: LazyRegistry[PredictorInfo] = LazyRegistry("predictor")
+
+
+def _failure_mode(name: str, target: str, description: str, needs_blender: bool = False) -> None:
+    PREDICTORS.add(PredictorInfo(name, f"rigidbench.predictors.{target}", description, Kind.FAILURE_MODE,
+                                 needs_blender=needs_blender, writes_state=True))
+
+
+# The failure-mode suite: the reference with one known thing changed by a severity s in [0, 1].
+_failure_mode("reference", "image_space:reference", "the reference itself, losslessly re-encoded")
+_failure_mode("static", "image_space:static", "motion frozen: time runs at (1 - s) of real time")
+_failure_mode("slow", "image_space:slow", "playback (1 + s) times slower")
+_failure_mode("fast", "image_space:fast", "playback (1 + s) times faster; the clip ends early")
+_failure_mode("delayed", "image_space:delayed", "motion starts 0.5 s x s late")
+_failure_mode("gamma", "image_space:gamma", "appearance change: gamma 1 + 1.5 s")
+_failure_mode("camera-shake", "image_space:camera_shake", "coherent random per-frame camera shake")
+_failure_mode("camera-drift", "image_space:camera_drift", "coherent steady camera pan")
+_failure_mode("background-wobble", "image_space:background_wobble", "smooth non-rigid background displacement")
+_failure_mode("identity-swap", "identity_swap:identity_swap", "actors re-rendered in another object's materials",
+              needs_blender=True)
+_failure_mode("gravity", "counterfactuals:gravity", "re-simulated with gravity g (1 + s)", needs_blender=True)
+_failure_mode("restitution", "counterfactuals:restitution", "re-simulated with bouncier surfaces, e + s (1 - e)",
+              needs_blender=True)
+_failure_mode("friction", "counterfactuals:friction", "re-simulated with friction mu (1 - s)", needs_blender=True)
+_failure_mode("mass", "counterfactuals:mass", "re-simulated with actor masses alternately x and / (1 + 4 s)",
+              needs_blender=True)
+_failure_mode("depth-offset", "counterfactuals:depth_offset", "actors re-rendered 0.5 s m nearer the camera",
+              needs_blender=True)
+
+
+def predictor_info(name: str) -> PredictorInfo:
+    """The registry entry for ``name``, or an ad-hoc plug-in entry for a "package.module:attr" path."""
+    if name in PREDICTORS:
+        return PREDICTORS[name]
+    if ":" in name:
+        return PredictorInfo(name.rsplit(":", 1)[1], name, f"user plug-in {name}", Kind.PLUGIN)
+    raise UserError(PREDICTORS.unknown_message(name)
+                    + ". A model of your own: pass its path, e.g. mypackage.module:MyModel")
+
+
+def failure_modes() -> tuple[str, ...]:
+    """Names of the registered failure modes, in registration order."""
+    return tuple(n for n, info in PREDICTORS.items() if info.kind == Kind.FAILURE_MODE)
+
+
+__all__ = ["PREDICTORS", "FailureMode", "FunctionPredictor", "Kind", "ModelInputs", "PredictContext", "Prediction",
+           "Predictor", "PredictorInfo", "failure_modes", "model_inputs", "predictor_info"]

@@ -1,0 +1,201 @@
+"""The ``Predictor`` interface: everything that turns a reference example's first frame and prompt
+into a video.
+
+A predictor is registered once in ``predictors.PREDICTORS`` with a ``PredictorInfo``: its name,
+a one-line description, its kind (failure mode, local model, hosted model, user plug-in), whether
+it needs Blender and whether it writes the exact world state its video shows (which ``--perception
+gt`` then scores). ``PredictorInfo.create()`` imports its target and returns a ``Predictor`` whose
+``predict(sample, ctx)`` gives a ``Prediction``; the predict stage writes it to disk.
+
+The target may be a ``Predictor`` subclass (constructed with the info), a failure-mode function
+``f(sample, severity, **options) -> Prediction``, or, for a plug-in, a function
+``f(sample, ctx) -> Prediction``.
+
+A video model reads its inputs from the sample exactly as the paper gives them to every model:
+``model_inputs(sample)`` returns the first frame, the task prompt followed by the paper's fixed
+suffix, and the paper's negative prompt.
+"""
+
+from __future__ import annotations
+
+import enum
+import inspect
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from ..benchmark import NEGATIVE_PROMPT, full_prompt
+from ..context import RunContext
+from ..perception.gt import WorldState
+from ..registry import load_target
+
+
+class Kind(str, enum.Enum):
+    FAILURE_MODE = "failure mode"
+    LOCAL = "local model"
+    HOSTED = "hosted model"
+    PLUGIN = "user plug-in"
+
+
+@dataclass
+class Prediction:
+    """What a predictor made for one example: frames (T,H,W,3) uint8 at times_s (T,) seconds, or
+    ``video_path``, a video file already encoded (e.g. a hosted model's download), kept as it is.
+
+    state: the exact world state the video shows, when known (failure modes); lossless: encode the
+    frames losslessly (failure modes, so gt perception sees exactly the frames) or as H.264 crf 18;
+    metadata: per-example facts for generation.json (prediction id, seed, timings, cost)."""
+
+    frames: np.ndarray | None = None
+    times_s: np.ndarray | None = None
+    state: WorldState | None = None
+    video_path: Path | None = None
+    lossless: bool = True
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def fps(self) -> float:
+        """Frame rate implied by the timestamps (the median frame interval)."""
+        if self.times_s is None or len(self.times_s) < 2:
+            raise ValueError("a prediction needs at least two timestamped frames to have a frame rate")
+        return float(1.0 / np.median(np.diff(self.times_s)))
+
+
+@dataclass(frozen=True)
+class PredictContext:
+    """What a predictor may use besides the example: the run context (configuration registry, device,
+    cache), the failure-mode severity in [0, 1], the generation seed, for predictors that render a
+    directory in which to keep their bundle (None: a temporary one), the output directory of the run
+    (where a predictor may keep per-example state such as a hosted prediction id) and model options
+    from the command line (e.g. offload, checkpoint, concurrency)."""
+
+    run: RunContext = field(default_factory=RunContext)
+    severity: float = 1.0
+    seed: int = 0
+    keep_bundle_dir: Path | None = None
+    out_dir: Path | None = None
+    options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    @property
+    def registry(self):
+        return self.run.registry
+
+    def option(self, name: str, default: Any = None) -> Any:
+        """A model option, or ``default`` when it was not given (None counts as not given)."""
+        value = self.options.get(name)
+        return default if value is None else value
+
+
+@dataclass(frozen=True)
+class ModelInputs:
+    """What every video model is given (paper, appendix B.1): the first frame (H,W,3) uint8 and its PNG,
+    the task prompt followed by the fixed suffix, and the negative prompt (for models that take one)."""
+
+    image: np.ndarray
+    image_path: Path
+    prompt: str
+    negative_prompt: str
+
+
+def model_inputs(sample) -> ModelInputs:
+    """The model inputs of a reference ``Sample``."""
+    return ModelInputs(sample.frame(0), sample.first_frame_path, full_prompt(sample.prompt), NEGATIVE_PROMPT)
+
+
+@dataclass(frozen=True)
+class PredictorInfo:
+    """Registry entry of a predictor. ``target`` is "module:attr"; see the module docstring."""
+
+    name: str
+    target: str
+    description: str
+    kind: Kind
+    needs_blender: bool = False
+    writes_state: bool = False
+    aliases: tuple[str, ...] = ()
+
+    def create(self) -> "Predictor":
+        """Import the target and return a ready ``Predictor``."""
+        obj = load_target(self.target, f"predictor '{self.name}'")
+        if isinstance(obj, type) and issubclass(obj, Predictor):
+            return obj(self)
+        if not callable(obj):
+            raise TypeError(f"predictor '{self.name}': {self.target} is neither a Predictor class nor a function")
+        if self.kind == Kind.FAILURE_MODE:
+            return FailureMode(self, obj)
+        return FunctionPredictor(self, obj)
+
+
+class Predictor(ABC):
+    """One video model (or failure mode); ``info`` is its registry entry.
+
+    ``paid``: each example is a paid call to a hosted API (``--dry-run`` and ``audit`` count them);
+    ``concurrency(ctx)``: how many examples the predict stage may run at once in threads."""
+
+    paid: bool = False
+
+    def __init__(self, info: PredictorInfo):
+        self.info = info
+
+    @property
+    def name(self) -> str:
+        return self.info.name
+
+    @abstractmethod
+    def predict(self, sample, ctx: PredictContext) -> Prediction:
+        """The video this predictor makes for reference ``sample`` (a ``groundtruth.bundle.Sample``)."""
+
+    def settings(self, ctx: PredictContext) -> dict[str, Any]:
+        """What, besides the predictor's name, makes its outputs differ (recorded; a change means a rerun)."""
+        return {"seed": ctx.seed}
+
+    def generation_info(self, ctx: PredictContext) -> dict[str, Any]:
+        """Model identifier, revision and every generation parameter, for generation.json."""
+        return {}
+
+    def describe(self, sample, ctx: PredictContext) -> dict[str, Any]:
+        """The request this predictor would make for ``sample`` (``--dry-run``; no secrets, images elided)."""
+        inputs = model_inputs(sample)
+        return {"image": str(inputs.image_path), "prompt": inputs.prompt, "negative_prompt": inputs.negative_prompt,
+                "seed": ctx.seed}
+
+    def concurrency(self, ctx: PredictContext) -> int:
+        return 1
+
+    def close(self) -> None:
+        """Release models or connections (called once after the last example)."""
+
+
+class FailureMode(Predictor):
+    """A failure mode ``f(sample, severity, **options)``; options it accepts among ``registry`` (the
+    configuration it re-simulates with) and ``bundle_dir`` (where to keep its re-rendered bundle)."""
+
+    def __init__(self, info: PredictorInfo, function: Callable):
+        super().__init__(info)
+        self.function = function
+        self._accepts = set(inspect.signature(function).parameters)
+
+    def predict(self, sample, ctx: PredictContext) -> Prediction:
+        options = {"registry": ctx.registry, "bundle_dir": ctx.keep_bundle_dir}
+        return self.function(sample, float(ctx.severity), **{k: v for k, v in options.items() if k in self._accepts})
+
+    def settings(self, ctx: PredictContext) -> dict[str, Any]:
+        return {"severity": float(ctx.severity)}
+
+    def describe(self, sample, ctx: PredictContext) -> dict[str, Any]:
+        return {"severity": float(ctx.severity), "re-rendered": self.info.needs_blender}
+
+
+class FunctionPredictor(Predictor):
+    """A plug-in function ``f(sample, ctx) -> Prediction``."""
+
+    def __init__(self, info: PredictorInfo, function: Callable):
+        super().__init__(info)
+        self.function = function
+
+    def predict(self, sample, ctx: PredictContext) -> Prediction:
+        return self.function(sample, ctx)
