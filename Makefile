@@ -21,6 +21,11 @@ $(STAMP): pyproject.toml Makefile
 	# LPIPS's linear-layer weights ship in the lpips package; install it without its torchvision
 	# dependency (the CPU torch wheel has no matching torchvision build here, and we don't need it).
 	$(PIP) install --quiet --no-deps "lpips==0.1.4"
+	# Headless Chromium (Debian's package) for the report's browser test; skipped with its reason when
+	# it cannot be installed (not root, no apt).
+	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } || \
+		echo "chromium not installed: the report's browser test will be skipped"
 	@touch $(STAMP)
 
 setup: $(STAMP)

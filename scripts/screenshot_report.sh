@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Screenshot a report page with headless Chromium (Debian: `apt-get install -y chromium`).
 #   scripts/screenshot_report.sh [REPORT_HTML] [OUT_PNG] [WIDTHxHEIGHT]
-# Defaults: report/report.html -> docs/report_screenshot.png at 1280x2400.
+# Defaults: report/report.html -> docs/report_screenshot.png at 1280x2400 (the header, the model table,
+# the SSIM / ATE-3D figure and the start of the example filmstrips).
 set -euo pipefail
 
 html="${1:-report/report.html}"
@@ -29,6 +30,7 @@ abs_out="$(cd "$(dirname "$out")" && pwd)/$(basename "$out")"
 profile="$(mktemp -d)"
 trap 'rm -rf "$profile"' EXIT
 "$browser" --headless --no-sandbox --disable-gpu --hide-scrollbars --user-data-dir="$profile" \
+    --virtual-time-budget=10000 \
     --window-size="${size/x/,}" --screenshot="$abs_out" "file://$abs_html" >/dev/null 2>&1
 if [[ ! -s "$abs_out" ]]; then
     echo "screenshot_report: $browser wrote no screenshot to $abs_out" >&2

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from .context import RunContext
 from .errors import RigidBenchError, UserError
+from .train.commands import add_commands as add_train_commands
 
 DEFAULT_DATA = Path("data")
 CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
@@ -113,8 +114,10 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
 
     out = args.out or Path("runs") / args.predictions.name
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
+    executor, shard = executor_from(args)
     summary = evaluate(args.predictions, _split_dir(args), out, perception=args.perception, ids=_selected_ids(args),
-                       limit=args.limit, model=args.model, perception_options=options)
+                       limit=args.limit, model=args.model, perception_options=options, executor=executor, shard=shard,
+                       device=ctx.device)
     overall = summary.results["overall"]
     print(f"{summary.results['model']}: {len(summary.evaluated)} evaluated, {len(summary.reused)} unchanged "
           f"(reused), {len(summary.failed)} failed -> {out}")
@@ -132,8 +135,9 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
 
 def format_predictors() -> str:
     """The predictor registry as a table: name, kind, what it needs and writes, description."""
-    from .predictors import PREDICTORS
+    from .predictors import PREDICTORS, load_entry_points
 
+    load_entry_points()
     lines = [f"{'name':18s} {'kind':13s} {'needs':8s} {'writes':12s} description"]
     for name, info in PREDICTORS.items():
         needs = "Blender" if info.needs_blender else "-"
@@ -144,9 +148,22 @@ def format_predictors() -> str:
     return "\n".join(lines)
 
 
+def _predict_context(args, ctx: RunContext):
+    """The PredictContext of ``predict`` and ``audit``: severity, seed and the model options given."""
+    from types import MappingProxyType
+
+    from .predictors import PredictContext
+
+    options = {"concurrency": args.concurrency, "offload": args.offload or None, "tiled_vae": args.tiled_vae or None,
+               "checkpoint": args.checkpoint, "no_guardrail": args.no_guardrail or None, "model_path": args.model_path,
+               "repay_expired": args.repay_expired or None}
+    return PredictContext(ctx, args.severity, args.seed,
+                          options=MappingProxyType({k: v for k, v in options.items() if v is not None}))
+
+
 def cmd_predict(args, ctx: RunContext) -> int:
     from .pipeline.predict import predict
-    from .predictors import PredictContext, predictor_info
+    from .predictors import predictor_info
 
     if args.list:
         print(format_predictors())
@@ -155,13 +172,36 @@ def cmd_predict(args, ctx: RunContext) -> int:
         raise UserError("name a predictor (rigidbench predict --list shows them)")
     info = predictor_info(args.name)
     out = args.out or Path("predictions") / info.name
-    summary = predict(args.name, _split_dir(args), out, PredictContext(ctx, args.severity, args.seed),
-                      _selected_ids(args), args.limit)
-    print(f"{info.name} (severity {args.severity}): {len(summary.written)} predictions in {out} "
+    executor, shard = executor_from(args)
+    summary = predict(args.name, _split_dir(args), out, _predict_context(args, ctx), _selected_ids(args), args.limit,
+                      dry_run=args.dry_run, executor=executor, shard=shard)
+    if args.dry_run:
+        print(f"{info.name}: would generate {len(summary.planned)} videos ({len(summary.skipped)} already there), "
+              f"{summary.paid_calls} paid API calls; nothing was sent")
+        return 0
+    print(f"{info.name}: {len(summary.written)} predictions in {out} "
           f"({len(summary.skipped)} already there), {len(summary.failed)} failed")
     for sample_id, reason in summary.failed.items():
         print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
     return 1 if summary.failed else 0
+
+
+def cmd_audit(args, ctx: RunContext) -> int:
+    from .pipeline.audit import audit
+
+    models = [m for chunk in args.models for m in _ids(chunk)]
+    options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
+    summary = audit(models, _split_dir(args), args.out, _predict_context(args, ctx), yes=args.yes,
+                    perception=args.perception, perception_options=options, ids=_selected_ids(args), limit=args.limit,
+                    resamples=args.resamples)
+    if summary.stopped_for_confirmation:
+        return 2
+    for model, failures in summary.failed.items():
+        for sample_id, reason in failures.items():
+            print(f"  FAILED {model}/{sample_id}: {reason}", file=sys.stderr)
+    if summary.report is not None:
+        print(f"report: {summary.report}")
+    return 1 if summary.failed or summary.blocked else 0
 
 
 def cmd_demo(args, ctx: RunContext) -> int:
@@ -202,6 +242,7 @@ def _add_render_commands(subparsers) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
                    help="Cycles device: auto picks OptiX, then CUDA, then the CPU (default auto)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_executor_arguments(p)
     p.set_defaults(func=_lazy("rigidbench.pipeline.render:cmd_render"))
 
     p = subparsers.add_parser("show", help="write a PNG contact sheet of a rendered example "
@@ -220,6 +261,41 @@ def _add_selection(p: argparse.ArgumentParser, split_default: str = "eval") -> N
     p.add_argument("--split", choices=("train", "eval"), default=split_default, help="manifest to draw examples from")
     p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 (default: all)")
     p.add_argument("--limit", type=int, help="only the first N selected examples")
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    """Options of video models (each model uses the ones that apply to it and records them)."""
+    p.add_argument("--severity", type=float, default=1.0,
+                   help="failure modes: 0 = the reference, 1 = strong (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="generation seed for video models (default 0)")
+    p.add_argument("--concurrency", type=int, help="hosted models: predictions in flight at once (default 8)")
+    p.add_argument("--repay-expired", action="store_true",
+                   help="hosted models: pay for a new prediction when a paid one's output has expired at the API")
+    p.add_argument("--device", dest="net_device", help="local models and networks: cuda or cpu (default: CUDA "
+                                                       "when available)")
+    p.add_argument("--offload", action="store_true", help="local models: model CPU offload (smaller GPUs)")
+    p.add_argument("--tiled-vae", action="store_true", help="local models: tiled VAE decoding (smaller GPUs)")
+    p.add_argument("--checkpoint", type=Path, help="wan-2.2: a LoRA adapter or a full fine-tuned transformer")
+    p.add_argument("--model-path", type=Path, help="local models: weights from this directory instead of the hub")
+    p.add_argument("--no-guardrail", action="store_true",
+                   help="cosmos-2.5: replace the Cosmos guardrail with a pass-through (you take on its licence terms)")
+
+
+def add_executor_arguments(p: argparse.ArgumentParser) -> None:
+    """--executor, --ray-address and --shard: how and which part of a stage's examples run."""
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: this machine; ray: one task per example on a Ray cluster (outputs go to a directory "
+                        "every node sees)")
+    p.add_argument("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local Ray)")
+    p.add_argument("--shard", metavar="I/N", help="only the I-th of N deterministic parts of the examples "
+                                                  "(0-based; for job arrays), e.g. --shard 0/4")
+
+
+def executor_from(args):
+    """(Executor, Shard) from --executor, --ray-address and --shard."""
+    from .executors import Shard, make_executor
+
+    return make_executor(args.executor, ray_address=args.ray_address), Shard.parse(args.shard)
 
 
 def _add_data(p: argparse.ArgumentParser) -> None:
@@ -268,12 +344,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--list", action="store_true", help="list the registered predictors and exit")
     _add_data(p)
     p.add_argument("--out", type=Path, help="output directory (default predictions/NAME)")
-    p.add_argument("--severity", type=float, default=1.0,
-                   help="failure modes: 0 = the reference, 1 = strong (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="generation seed for video models (default 0)")
+    _add_model_options(p)
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the request each example would send and the number of paid calls; send nothing")
+    add_executor_arguments(p)
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)
     p.set_defaults(func=cmd_predict)
+
+    p = sub.add_parser("audit", help="several video models end to end: predict (resuming), validate, evaluate, "
+                                     "then one report; stops before paid API calls unless --yes")
+    p.add_argument("--models", nargs="+", required=True, metavar="NAME",
+                   help="comma- or space-separated predictor names, e.g. wan-2.2,veo-3.1")
+    _add_data(p)
+    p.add_argument("--out", type=Path, default=Path("audit"), help="output directory (default audit/)")
+    p.add_argument("--perception", choices=("gt", "neural"), default="neural",
+                   help="neural for video models (default); gt only for predictors that write world state")
+    p.add_argument("--depth-model", choices=("vda", "dav2"), default="vda")
+    p.add_argument("--yes", action="store_true", help="make the paid API calls the audit counted")
+    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples in the report")
+    p.add_argument("--ids", nargs="+", metavar="ID")
+    p.add_argument("--limit", type=int)
+    _add_model_options(p)
+    p.set_defaults(func=cmd_audit)
 
     p = sub.add_parser("validate", help="fast preflight of a predictions directory before evaluation")
     p.add_argument("predictions", type=Path, help="directory with <id>.mp4 files")
@@ -292,6 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="neural perception device, e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
+    add_executor_arguments(p)
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)
     p.set_defaults(func=cmd_evaluate)
@@ -301,6 +395,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baseline", help="model for paired changes (default: first run not named 'reference')")
     p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples (default 20000)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--examples", type=int, default=3, help="examples shown as filmstrips (default 3; 0: none)")
+    p.add_argument("--no-clips", action="store_true", help="no looping video clips beside the filmstrips")
+    p.add_argument("--outlines", choices=("reference", "perceived"), default="reference",
+                   help="object outlines drawn on the filmstrips: the reference masks, or each run's perceived masks")
     p.set_defaults(func=_lazy("rigidbench.report:cmd_report"))
     p = sub.add_parser("validate-metrics", help="controlled metric perturbations and one failure-mode response "
                        "curve per metric (figure + table)")
@@ -327,6 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "image-space failure modes plus gravity)")
     p.add_argument("--no-report", action="store_true", help="skip the report (tables, figures, report.html)")
     p.set_defaults(func=cmd_demo)
+    add_train_commands(sub)  # preprocess, train (fine-tuning Wan 2.2)
     return parser
 
 

@@ -588,6 +588,17 @@ def _last_file(dirs: list[Path], name: str) -> Path:
     return found[-1]
 
 
+def config_file(name: str, extra_dirs: Iterable[str | Path] = ()) -> Path:
+    """The file ``name`` (e.g. "models.yaml") from the last configuration directory that has it: a copy in
+    an extra directory replaces the packaged one as a whole. ConfigError when none has it."""
+    return _last_file(config_dirs(extra_dirs), name)
+
+
+def read_config_yaml(path: str | Path) -> Any:
+    """Parse one YAML configuration file; ConfigError names the file (and line) when it cannot be read."""
+    return _read_yaml(Path(path))
+
+
 def load_registry(extra_dirs: Iterable[str | Path] = ()) -> Registry:
     """Read and validate every configuration file; raises ConfigError naming file and field."""
     dirs = config_dirs(extra_dirs)

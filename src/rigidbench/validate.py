@@ -20,6 +20,8 @@ from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, V
 ERROR = "error"
 WARNING = "warning"
 
+#: Files `rigidbench predict` writes into a predictions directory besides the videos.
+RUN_FILES = frozenset({"generation.json"})
 #: Relative aspect-ratio difference above which resizing visibly distorts the clip.
 ASPECT_TOLERANCE = 0.02
 #: Relative disagreement between header and timestamp frame rates reported as a warning.
@@ -122,6 +124,8 @@ def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, lis
             continue  # hidden files, including half-written temporaries
         if entry.name.endswith(STATE_SUFFIX):
             continue  # world state written by built-in predictors beside their videos
+        if entry.name in RUN_FILES:
+            continue  # written by `rigidbench predict` beside the videos
         if entry.stem not in report.references:
             report.add(WARNING, "extra", f"{entry.name}: '{entry.stem}' is not an example id in the data "
                        "directory; ignored", None, entry)

@@ -13,7 +13,7 @@ from rigidbench.metrics import METRICS, MetricInfo, MetricResult
 from rigidbench.perception.features import FeatureNets
 from rigidbench.pipeline.demo import format_table
 from rigidbench.pipeline.predict import predict
-from rigidbench.predictors import PREDICTORS, Kind, PredictContext, PredictorInfo
+from rigidbench.predictors import PREDICTORS, Kind, PredictContext, Predictor, PredictorInfo
 from rigidbench.predictors.image_space import reference
 from rigidbench.report import build_report
 
@@ -94,3 +94,62 @@ def test_a_bad_example_is_recorded_and_the_run_goes_on(data_dir, tmp_path):
     summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), progress=False)
     assert list(summary.failed) == ["00015"] and "00015.mp4" in summary.failed["00015"]
     assert issubclass(type(RigidBenchError("x")), Exception)
+
+
+def test_the_readme_plugin_example_runs_as_written(data_dir, tmp_path, monkeypatch, capsys):
+    """The 'Your own model' example of README.md, copied verbatim into a module and run through the CLI."""
+    import re
+    from pathlib import Path
+
+    from rigidbench.cli import main
+    from rigidbench.validate import validate_predictions
+    from rigidbench.video import read_video
+
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
+    section = readme.split("### Your own model", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    (tmp_path / "my_model.py").write_text(code)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "predictions" / "still"
+    assert main(["predict", "my_model:StillModel", "--data", str(data_dir), "--out", str(out)]) == 0, \
+        capsys.readouterr().err
+    video = read_video(out / "00015.mp4")
+    assert video.frames.shape[0] == 49 and np.allclose(np.diff(video.times_s), 1 / 24)
+    generation = json.loads((out / "generation.json").read_text())
+    assert generation["kind"] == "user plug-in" and generation["examples"]["00015"]["status"] == "succeeded"
+    assert generation["examples"]["00015"]["prompt"].endswith("Motion begins on the first frame.")
+    assert validate_predictions(out, data_dir).ok
+
+
+class PaidReference(Predictor):
+    """A stand-in for a hosted model: every example is a paid call; it shows the reference."""
+
+    paid = True
+    calls = 0
+
+    def predict(self, sample, ctx):
+        PaidReference.calls += 1
+        return reference(sample, 0.0)
+
+
+def test_audit_stops_before_paid_calls_then_predicts_evaluates_and_reports(data_dir, tmp_path, capsys):
+    from rigidbench.cli import main
+
+    paid = PredictorInfo("paid-reference", f"{__name__}:PaidReference", "a paid stand-in", Kind.HOSTED,
+                         writes_state=True)
+    argv = ["audit", "--models", "static,paid-reference", "--data", str(data_dir), "--out", str(tmp_path / "audit"),
+            "--perception", "gt", "--resamples", "200"]
+    with PREDICTORS.added(paid):
+        PaidReference.calls = 0
+        assert main(argv) == 2  # not confirmed: nothing is sent or written
+        assert "paid-reference: 1" in capsys.readouterr().out and PaidReference.calls == 0
+        assert not (tmp_path / "audit" / "predictions" / "static" / "00015.mp4").exists()
+        assert main(argv + ["--yes"]) == 0
+        out = capsys.readouterr().out
+        assert PaidReference.calls == 1 and "report: " in out
+        for model in ("static", "paid-reference"):
+            results = json.loads((tmp_path / "audit" / "runs" / model / "results.json").read_text())
+            assert results["n_examples"] == 1 and not results["failed"]
+        assert (tmp_path / "audit" / "report" / "report.html").exists()
+        assert main(argv) == 0  # everything is there: no paid call left, nothing to confirm
+        assert PaidReference.calls == 1

@@ -100,3 +100,17 @@ def test_predictor_info_create_rejects_a_non_callable_target():
     info = PredictorInfo("pi", "math:pi", "not a predictor", Kind.PLUGIN)
     with pytest.raises(TypeError, match="neither a Predictor class nor a function"):
         info.create()
+
+
+def test_installed_packages_register_predictors_through_entry_points(tmp_path, monkeypatch):
+    dist = tmp_path / "still_model-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: still-model\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[rigidbench.predictors]\nstill = still_model:StillModel\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        info = predictor_info("still")  # not registered yet: entry points are read, nothing is imported
+        assert info.target == "still_model:StillModel" and info.kind == Kind.PLUGIN and "still-model" in info.description
+    finally:
+        if "still" in PREDICTORS:
+            PREDICTORS.remove("still")

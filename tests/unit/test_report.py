@@ -115,16 +115,23 @@ def example_scores(run_dir: Path, metric: str, ids=IDS) -> np.ndarray:
 # ----------------------------------------------------------------------------------- marks
 
 
-def test_rank_marks_competition_ranking_with_direction_ties_and_eligibility():
+def test_rank_marks_unique_values_only_with_direction_ties_and_eligibility():
     # Higher is better: 0.9 best, 0.8 second.
     assert rank_marks(np.array([0.9, 0.7, 0.8, 0.1]), True, np.ones(4, bool)) == ["best", "", "second", ""]
     # Lower is better: 0.1 best, 0.2 second.
     assert rank_marks(np.array([0.3, 0.1, 0.2, 0.4]), False, np.ones(4, bool)) == ["", "best", "second", ""]
-    # A tie for best shares 'best'; the next value has rank 3 and no mark.
-    assert rank_marks(np.array([1.0, 1.0, 2.0]), False, np.ones(3, bool)) == ["best", "best", ""]
+    # A tie takes no mark: not for the tied best (two zeros), and nothing below it.
+    assert rank_marks(np.array([0.0, 0.0, 2.0]), False, np.ones(3, bool)) == ["", "", ""]
+    # A unique best keeps its mark when the next two tie; the tie for second is unmarked.
+    assert rank_marks(np.array([0.5, 1.0, 1.0, 2.0]), False, np.ones(4, bool)) == ["best", "", "", ""]
     # Two models: the worse one is not 'second-best'; an all-tied column has no marks.
     assert rank_marks(np.array([1.0, 2.0]), False, np.ones(2, bool)) == ["best", ""]
     assert rank_marks(np.array([1.0, 1.0]), False, np.ones(2, bool)) == ["", ""]
+    # With decimals, means that print the same tie: 0.00002 and 0.00003 both read 0.000.
+    assert rank_marks(np.array([2e-5, 3e-5, 0.4]), False, np.ones(3, bool)) == ["best", "second", ""]
+    assert rank_marks(np.array([2e-5, 3e-5, 0.4]), False, np.ones(3, bool), decimals=3) == ["", "", ""]
+    # ... after the display scale (BGDrift x 1000): 0.020 and 0.030 differ.
+    assert rank_marks(np.array([2e-5, 3e-5, 0.4]), False, np.ones(3, bool), 3, 1000.0) == ["best", "second", ""]
     # Ineligible (e.g. the reference) and NaN means take no mark and do not push others down.
     assert rank_marks(np.array([0.0, np.nan, 0.3, 0.2, 0.5]), False,
                       np.array([False, True, True, True, True])) == ["", "", "second", "best", ""]
@@ -256,7 +263,8 @@ class _Refs(HTMLParser):
         self.refs = []
 
     def handle_starttag(self, tag, attrs):
-        self.refs += [value for key, value in attrs if key in ("src", "href") and value]
+        # In-page anchors (the contents line) are not files.
+        self.refs += [value for key, value in attrs if key in ("src", "href") and value and not value.startswith("#")]
 
 
 def html_refs(page: Path) -> list[str]:
@@ -276,7 +284,8 @@ def test_every_file_referenced_from_report_html_exists(report):
     for stem in ("ssim_vs_ate3d", "ate3d_by_task", "metric_intervals", "poi_heatmaps"):
         assert (report.parent / "figures" / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert (report.parent / "figures" / f"{stem}.pdf").read_bytes()[:5] == b"%PDF-"
-    for key in ("model_metrics", "ate3d_by_task", "by_partition", "paired_changes"):
+    for key in ("model_metrics", "by_task", "all_by_task", "by_partition", "all_by_partition", "paired_changes",
+                "poi_ate3d", "poi_ssim"):
         for ext in ("md", "tex"):
             assert f"tables/{key}.{ext}" in refs
     page = report.read_text()
@@ -355,8 +364,11 @@ def test_explicit_baseline(runs):
     k = data.table.metric_index("iou")
     assert data.paired_diff.mean[1, k] == pytest.approx(IOU_MEANS["alpha"] - IOU_MEANS["beta"])
     table = paired_table(data)
-    assert table.header[2] == "Δ vs beta"
+    assert table.title == "Paired comparisons with beta" and table.header[2] == "IoU"
+    # Two rows per model, Δ then PoI, every model but the baseline.
     assert [row[0].text for row in table.rows if row[0].text] == ["reference", "alpha", "gamma_run", "delta"]
+    assert [row[1].text for row in table.rows[:2]] == ["Δ", "PoI"]
+    assert table.rows[2][2 + k].text == "+0.200"  # alpha's IoU change against beta
 
 
 def test_cmd_report_errors_are_rigidbench_errors(tmp_path):

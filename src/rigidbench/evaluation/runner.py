@@ -13,10 +13,11 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import EXAMPLE_ERRORS, EvaluationError, UserError
+from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
 from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
-from ..perception.features import FeatureNets, load_feature_nets
+from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
 from ..perception.gt import state_path
 from ..video import VIDEO_EXTENSIONS, align_video, read_video, reference_times, resize_frames
 from .aggregation import EVAL_SIZE, aggregate, why_not_official
@@ -63,14 +64,16 @@ def _finite_or_none(x: float | None) -> float | None:
 
 def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
              ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
-             model: str | None = None, progress: bool = True,
-             perception_options: dict | None = None) -> EvaluationSummary:
+             model: str | None = None, progress: bool = True, perception_options: dict | None = None,
+             executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None) -> EvaluationSummary:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
     holding one split); writes out/examples/<id>.json and .npz, out/results.json and out/run.json.
 
     ``perception_options`` go to the backend's constructor (neural: depth_model, device, weights,
     allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
-    ``out/cache/<backend>/``. A rerun reuses examples whose inputs are unchanged."""
+    ``out/cache/<backend>/``. A rerun reuses examples whose inputs are unchanged. ``executor`` runs
+    the examples (default: in this process); ``shard`` scores only its part of the selection (its
+    results.json covers that part; a final run without ``shard`` reuses every example and aggregates)."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
@@ -83,22 +86,23 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
         if unknown:
             raise UserError(f"unknown example id(s) {', '.join(unknown)} in {data_dir}")
         refs = [p for p in refs if p.name in set(ids)]
-    refs = refs[:limit] if limit is not None else refs
+    refs = shard.select(refs[:limit] if limit is not None else refs)
+    executor = executor or LocalExecutor()
     metrics = tuple(METRICS)
     backend = ready_backend(perception, perception_options)
-    if hasattr(backend, "use_cache_dir"):
-        backend.use_cache_dir(out_dir / "cache" / backend.name)
-    nets = nets if nets is not None else load_feature_nets()
+    local = isinstance(executor, LocalExecutor)
+    if local and nets is None:
+        nets = load_feature_nets(device)
+    nets_key = nets.key if nets is not None else feature_nets_key()
     (out_dir / "examples").mkdir(parents=True, exist_ok=True)
     (out_dir / "cache").mkdir(exist_ok=True)
     started = time.time()
     evaluated, reused, failed, records = [], [], {}, []
     timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
     pred_hashes, ref_hashes = {}, {}
-    bar = tqdm(total=len(refs), unit="example", desc="evaluate", disable=not progress)
-    for ref_dir in refs:
+    todo = []
+    for ref_dir in refs:  # what needs scoring: the input keys are computed here, on the driver
         sample_id = ref_dir.name
-        bar.set_postfix_str(sample_id)
         try:
             pred = find_prediction(pred_dir, sample_id)
             if pred is None:
@@ -106,37 +110,99 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             state = state_path(pred)
             pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")
             ref_key = reference_hash(ref_dir)
-            pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
-            key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}", nets.key, metrics)
-            record_path = out_dir / "examples" / f"{sample_id}.json"
-            if record_path.exists():
-                old = json.loads(record_path.read_text())
-                if old.get("input_key") == key:
-                    records.append(old)
-                    reused.append(sample_id)
-                    bar.update(1)
-                    continue
-            record = _score_one(Sample(ref_dir), pred, backend, nets, model, key, out_dir, timings)
-            records.append(record)
-            evaluated.append(sample_id)
         except EXAMPLE_ERRORS as exc:
             failed[sample_id] = str(exc)
             log.warning("example %s failed: %s", sample_id, exc)
+            continue
+        pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
+        key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}", nets_key, metrics)
+        record_path = out_dir / "examples" / f"{sample_id}.json"
+        old = json.loads(record_path.read_text()) if record_path.exists() else {}
+        if old.get("input_key") == key:
+            records.append(old)
+            reused.append(sample_id)
+        else:
+            todo.append({"id": sample_id, "key": key})
+    job = {"pred_dir": str(pred_dir.resolve()), "data_dir": str(data_dir.resolve()), "out_dir": str(out_dir.resolve()),
+           "model": model, "perception": perception, "perception_options": perception_options or {}, "device": device}
+    bar = tqdm(total=len(todo), unit="example", desc="evaluate", disable=not progress or not todo)
+
+    def collect(item: dict, result: dict) -> None:
+        if result.get("status") == "succeeded":
+            records.append(result["record"])
+            evaluated.append(item["id"])
+            for k, v in result.get("timings", {}).items():
+                timings[k] = timings.get(k, 0.0) + v
+        else:
+            failed[item["id"]] = result.get("error", "failed")
+            log.warning("example %s failed: %s", item["id"], failed[item["id"]])
         bar.update(1)
-    bar.close()
+
+    worker = EvaluateWorker(job, backend=backend, nets=nets) if local else None
+    try:
+        executor.map(WORKER, job, todo, evaluation_resources(perception, device), on_result=collect, instance=worker)
+    finally:
+        bar.close()
+    records.sort(key=lambda r: r["id"])
+    evaluated.sort()
     complete_ids = {r["id"] for r in records}
+    selected = [p.name for p in refs]
     missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
-    official = (len(all_ids) == EVAL_SIZE and complete_ids == set(all_ids) and not failed and not missing_metrics)
-    skipped = {m: nets.skipped.get(m, "not computed") for m in missing_metrics}
+    official = (len(all_ids) == EVAL_SIZE and len(selected) == len(all_ids) and complete_ids == set(all_ids)
+                and not failed and not missing_metrics)
+    skipped = {m: _skip_reason(records, m, nets) for m in missing_metrics}
     results = {"model": model, "perception": backend.name, "official": official, "metrics": list(metrics),
                "n_examples": len(records), "n_reference": len(all_ids), "failed": failed,
                "skipped_metrics": skipped, **aggregate(records, metrics)}
+    if shard.count > 1:
+        results["shard"] = str(shard)
     if not official:
         results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics)
     write_json(out_dir / "results.json", results)
-    write_json(out_dir / "run.json", run_info(model, pred_dir, data_dir, backend, nets, metrics, pred_hashes,
+    feature_nets = nets if nets is not None else FeatureNets(skipped={m: skipped[m] for m in skipped})
+    write_json(out_dir / "run.json", run_info(model, pred_dir, data_dir, backend, feature_nets, metrics, pred_hashes,
                                               ref_hashes, timings, time.time() - started, evaluated, reused, failed))
     return EvaluationSummary(out_dir, evaluated, reused, failed, skipped, official, results)
+
+
+def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> str:
+    if nets is not None and metric in nets.skipped:
+        return nets.skipped[metric]
+    return next((r["skipped"][metric] for r in records if metric in r.get("skipped", {})), "not computed")
+
+
+def evaluation_resources(perception: str, device: str | None) -> Resources:
+    """One GPU per worker for neural perception (unless the device is the CPU); one CPU otherwise."""
+    return Resources(num_cpus=1, num_gpus=1 if perception == "neural" and device != "cpu" else 0)
+
+
+WORKER = "rigidbench.evaluation.runner:EvaluateWorker"
+
+
+class EvaluateWorker:
+    """Scores one example per call, ``{"id", "key"}`` -> a record (``status`` succeeded or failed); keeps
+    its perception backend and feature networks loaded between calls (a Ray actor holds one)."""
+
+    def __init__(self, job: dict, backend=None, nets: FeatureNets | None = None):
+        self.pred_dir, self.data_dir, self.out_dir = (Path(job[k]) for k in ("pred_dir", "data_dir", "out_dir"))
+        self.model = job["model"]
+        self.backend = backend or ready_backend(job["perception"], job.get("perception_options"))
+        if hasattr(self.backend, "use_cache_dir"):
+            self.backend.use_cache_dir(self.out_dir / "cache" / self.backend.name)
+        self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
+
+    def __call__(self, item: dict) -> dict:
+        timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
+        sample_id = item["id"]
+        try:
+            pred = find_prediction(self.pred_dir, sample_id)
+            if pred is None:
+                raise EvaluationError(f"{sample_id}: its prediction disappeared from {self.pred_dir}")
+            record = _score_one(Sample(self.data_dir / sample_id), pred, self.backend, self.nets, self.model,
+                                item["key"], self.out_dir, timings)
+        except EXAMPLE_ERRORS as exc:
+            return failure_record(exc)
+        return {"status": "succeeded", "record": record, "timings": timings}
 
 
 def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, out_dir: Path,

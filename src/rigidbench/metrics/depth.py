@@ -98,8 +98,10 @@ def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray) -> D
         n += dv.size
         s_d += float(dv.sum())
         s_y += float(yv.sum())
-        s_dd += float(dv @ dv)
-        s_dy += float(dv @ yv)
+        # numpy's pairwise sums, not BLAS dot products: BLAS splits long sums across its threads, so the
+        # last bits would depend on the thread count (a Ray worker runs with one).
+        s_dd += float(np.sum(dv * dv))
+        s_dy += float(np.sum(dv * yv))
     if n == 0:
         log.warning("no pixel has both finite predicted disparity and valid reference depth; "
                     "depth metrics are undefined for this clip")

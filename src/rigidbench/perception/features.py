@@ -176,3 +176,11 @@ def load_feature_nets(device: str | None = None, allow_download: bool = False) -
     except WeightsUnavailable as exc:
         nets.skipped["iddrift"] = str(exc)
     return nets
+
+
+def feature_nets_key() -> str:
+    """The ``FeatureNets.key`` that ``load_feature_nets`` would give here, from which weights are present,
+    without loading them (a driver whose workers load the networks elsewhere keys examples with it)."""
+    lpips = weights.locate("lpips-lin") is not None and weights.locate("alexnet") is not None
+    dinov2 = weights.locate("dinov2") is not None
+    return FeatureNets(lpips=(lambda: None) if lpips else None, identity=(lambda: None) if dinov2 else None).key

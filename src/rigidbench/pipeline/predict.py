@@ -16,18 +16,20 @@ import logging
 import shutil
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 
 from tqdm import tqdm
 
+from ..context import RunContext
 from ..errors import EXAMPLE_ERRORS, UserError
+from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..evaluation.cache import write_json
 from ..evaluation.provenance import versions
 from ..groundtruth.bundle import Sample, bundle_dirs
 from ..perception.gt import state_path
-from ..predictors import Kind, PredictContext, Prediction, Predictor, model_inputs, predictor_info
+from ..predictors import Kind, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs, predictor_info
 from ..video import write_video
 
 log = logging.getLogger(__name__)
@@ -117,73 +119,113 @@ class GenerationLog:
 
 def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | None = None,
             ids: list[str] | None = None, limit: int | None = None, progress: bool = True,
-            predictor: Predictor | None = None, dry_run: bool = False) -> PredictSummary:
+            predictor: Predictor | None = None, dry_run: bool = False, executor: Executor | None = None,
+            shard: Shard = Shard()) -> PredictSummary:
     """Run predictor ``name`` (a registered name or a "module:attr" plug-in) over the reference bundles
     in ``split_dir``; returns what was written, skipped and failed (with ``dry_run``: what would be
-    generated and how many paid calls that takes, sending and writing nothing)."""
+    generated and how many paid calls that takes, sending and writing nothing). ``executor`` runs the
+    examples (default: this process, ``predictor.concurrency`` at once); ``shard`` takes its part."""
     ctx = ctx or PredictContext()
     if not 0.0 <= ctx.severity <= 1.0:
         raise UserError(f"severity must lie in [0, 1], got {ctx.severity}")
     out_dir = Path(out_dir)
+    split_dir = Path(split_dir)
     ctx = PredictContext(ctx.run, ctx.severity, ctx.seed, ctx.keep_bundle_dir, out_dir, ctx.options)
-    predictor = predictor or predictor_info(name).create()
-    info = predictor.info
-    refs = select_examples(Path(split_dir), ids, limit)
-    settings = {"predictor": info.name, "target": info.target, **predictor.settings(ctx)}
+    executor = executor or LocalExecutor()
+    local = isinstance(executor, LocalExecutor)
+    info = predictor.info if predictor is not None else predictor_info(name)
+    if predictor is None and (local or dry_run):
+        predictor = info.create()
+    settings_source = predictor or info.create()  # settings and provenance come from the driver's instance
+    refs = shard.select(select_examples(split_dir, ids, limit))
+    settings = {"predictor": info.name, "target": info.target, **settings_source.settings(ctx)}
     summary = PredictSummary()
     if dry_run:
         return _dry_run(predictor, refs, out_dir, settings, ctx, summary)
     done = finished_ids(out_dir, settings, info.writes_state)
-    todo = [r for r in refs if r.name not in done]
-    for ref in refs:
-        if ref.name in done:
-            summary.written.append(ref.name)
-            summary.skipped.append(ref.name)
+    todo = [r.name for r in refs if r.name not in done]
+    summary.skipped = [r.name for r in refs if r.name in done]
+    summary.written = list(summary.skipped)
     if summary.skipped:
         log.info("%s: %d of %d predictions already written with these settings; skipping them", out_dir,
                  len(summary.skipped), len(refs))
     log_file = GenerationLog(out_dir / GENERATION_FILE, {
         "predictor": info.name, "target": info.target, "kind": info.kind.value, "settings": settings,
-        "model": predictor.generation_info(ctx), "versions": versions(VERSION_PACKAGES)})
+        "model": settings_source.generation_info(ctx), "versions": versions(VERSION_PACKAGES)})
+    if settings_source is not predictor:
+        settings_source.close()
     bar = tqdm(total=len(todo), unit="example", desc=f"predict {info.name}", disable=not progress or not todo)
 
-    def one(ref: Path) -> None:
+    def collect(sample_id: str, entry: dict) -> None:
+        if entry.get("status") == "succeeded":
+            summary.written.append(sample_id)
+        else:
+            summary.failed[sample_id] = entry.get("error", "failed")
+            log.error("example %s failed: %s", sample_id, summary.failed[sample_id])
+        log_file.record(sample_id, entry)
+        bar.update(1)
+
+    job = {"predictor": {"name": info.name, "target": info.target, "description": info.description,
+                         "kind": info.kind.value, "needs_blender": info.needs_blender,
+                         "writes_state": info.writes_state},  # so a worker needs no registration of its own
+           "split_dir": str(split_dir.resolve()), "out_dir": str(out_dir.resolve()),
+           "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options)}
+    if local:
+        executor = LocalExecutor(threads=max(executor.threads, int(predictor.concurrency(ctx))))
+    worker = PredictWorker(job, predictor=predictor, ctx=ctx) if local else None
+    try:
+        executor.map(WORKER, job, todo, predict_resources(info, ctx), on_result=collect, instance=worker)
+    finally:
+        bar.close()
+    summary.written.sort()
+    return summary
+
+
+def predict_resources(info, ctx: PredictContext) -> Resources:
+    """A GPU for local video models (unless the device is the CPU); a fraction of a CPU for hosted calls."""
+    if info.kind == Kind.LOCAL:
+        return Resources(num_cpus=1, num_gpus=0 if ctx.run.device == "cpu" else 1)
+    if info.kind == Kind.HOSTED:
+        return Resources(num_cpus=0.25)
+    return Resources(num_cpus=1)
+
+
+WORKER = "rigidbench.pipeline.predict:PredictWorker"
+
+
+class PredictWorker:
+    """Makes and writes one example's prediction per call (sample id -> generation.json entry); keeps its
+    predictor (and any model it loaded) between calls. Built from the job in a Ray actor, or handed a
+    ready predictor and context in this process."""
+
+    def __init__(self, job: dict, predictor: Predictor | None = None, ctx: PredictContext | None = None):
+        self.split_dir = Path(job["split_dir"])
+        self.out_dir = Path(job["out_dir"])
+        self.ctx = ctx or PredictContext(RunContext.from_job(job["run"]), job["severity"], job["seed"],
+                                         out_dir=self.out_dir, options=MappingProxyType(dict(job["options"])))
+        self.predictor = predictor or PredictorInfo(**{**job["predictor"], "kind": Kind(job["predictor"]["kind"])}).create()
+
+    def __call__(self, sample_id: str) -> dict:
+        info, ctx = self.predictor.info, self.ctx
         started = time.time()
         entry: dict = {"seed": ctx.seed}
         try:
-            sample = Sample(ref)
+            sample = Sample(self.split_dir / sample_id)
             inputs = model_inputs(sample)
             entry.update(prompt=inputs.prompt, negative_prompt=inputs.negative_prompt)
-            pred = predictor.predict(sample, ctx)
+            pred = self.predictor.predict(sample, ctx)
             if info.writes_state and pred.state is None:
                 raise TypeError(f"predictor '{info.name}' is registered as writing the world state "
                                 "but returned a Prediction without one")
-            write_prediction(pred, out_dir, ref.name, sample.fps if info.kind == Kind.FAILURE_MODE else None)
+            write_prediction(pred, self.out_dir, sample_id, sample.fps if info.kind == Kind.FAILURE_MODE else None)
             entry.update(status="succeeded", **pred.metadata)
-            summary.written.append(ref.name)
         except EXAMPLE_ERRORS as exc:
-            entry.update(status="failed", error=str(exc))
-            summary.failed[ref.name] = str(exc)
-            log.error("example %s failed: %s", ref.name, exc)
-        finally:
-            entry["seconds"] = round(time.time() - started, 3)
-            log_file.record(ref.name, entry)
-            bar.update(1)
+            entry.update(failure_record(exc))
+        entry["seconds"] = round(time.time() - started, 3)
+        return entry
 
-    try:
-        workers = max(1, int(predictor.concurrency(ctx)))
-        if workers == 1:
-            for ref in todo:
-                one(ref)
-        else:
-            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"predict-{info.name}") as pool:
-                for future in as_completed([pool.submit(one, ref) for ref in todo]):
-                    future.result()  # a bug in one example stops the run
-    finally:
-        bar.close()
-        predictor.close()
-    summary.written.sort()
-    return summary
+    def close(self) -> None:
+        self.predictor.close()
 
 
 def _dry_run(predictor: Predictor, refs: list[Path], out_dir: Path, settings: dict, ctx: PredictContext,

@@ -30,6 +30,7 @@ from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, registry as load_registry
 from ..context import RunContext
 from ..errors import EXAMPLE_ERRORS, UserError
+from ..executors import Executor, Resources, Shard, make_executor
 from ..groundtruth import bundle as B
 from ..groundtruth.camera_model import intrinsics
 from ..groundtruth.contact_sheet import write_contact_sheet
@@ -316,6 +317,61 @@ def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path,
     return done_ids, failures
 
 
+# -- on a Ray cluster -------------------------------------------------------------------------------------
+
+
+RENDER_WORKER = "rigidbench.pipeline.render:RenderWorker"
+
+
+class RenderWorker:
+    """Renders one manifest row (a dict) per call into the shared data directory, in the worker's own
+    process (a Ray actor: a Blender crash kills the actor, and Ray runs the example again elsewhere)."""
+
+    def __init__(self, job: dict):
+        self.job = job
+        self.registry = load_registry(job["config_dirs"])
+        self.preset = self.registry.preset(job["preset"])
+
+    def __call__(self, row: dict) -> dict:
+        sample = ManifestRow.from_dict(row)
+        try:
+            path = render_to_bundle(sample, self.registry, self.preset, Path(self.job["data_dir"]),
+                                    device=self.job["device"], threads=self.job["threads"])
+        except (*EXAMPLE_ERRORS, RuntimeError) as exc:  # RuntimeError: Blender's own errors
+            return {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+        return {"status": "succeeded", "path": str(path)}
+
+
+def render_rows_with(executor: Executor, rows: Sequence[ManifestRow], registry: Registry, data_dir: Path,
+                     quality: str = "paper", device: str = "auto", config_dirs: Sequence[str | Path] = (),
+                     threads: int | None = None, progress: bool = True) -> tuple[list[str], list[Failure]]:
+    """``render_rows`` through an executor (one Ray actor per CPU set by default): same bundles, same layout."""
+    from tqdm import tqdm
+
+    registry.preset(quality)  # an unknown preset fails here, not on every worker
+    todo = [r for r in rows if not is_complete(data_dir, r)]
+    job = {"config_dirs": [str(d) for d in config_dirs], "preset": quality,
+           "data_dir": str(Path(data_dir).resolve()), "device": device, "threads": threads}
+    done_ids: list[str] = []
+    failures: list[Failure] = []
+    bar = tqdm(total=len(todo), desc="examples", unit="ex", disable=not progress or not todo)
+
+    def collect(row: dict, record: dict) -> None:
+        if record.get("status") == "succeeded":
+            done_ids.append(row["sample_id"])
+        else:
+            failures.append(Failure(row["sample_id"], record.get("error", "failed")))
+            bar.write(f"FAILED {row['sample_id']}: {failures[-1].reason}")
+        bar.update(1)
+
+    try:
+        executor.map(RENDER_WORKER, job, [r.to_dict() for r in todo], Resources(num_cpus=threads or 1),
+                     on_result=collect)
+    finally:
+        bar.close()
+    return sorted(done_ids), failures
+
+
 # -- command line ------------------------------------------------------------------------------------------
 
 
@@ -338,10 +394,15 @@ def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
     if B.bundle_dirs(data):
         raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
                         f"DATA/<split>/; did you mean --data {data.parent}?")
-    done, failures = render_rows(rows, reg, data, quality=args.quality, workers=args.workers, device=args.device,
-                                 config_dirs=ctx.config_dirs,
-                                 progress=not getattr(args, "no_progress", False),
-                                 quiet=not getattr(args, "verbose", False))
+    rows = Shard.parse(getattr(args, "shard", None)).select(rows)
+    if getattr(args, "executor", "local") == "ray":
+        executor = make_executor("ray", ray_address=args.ray_address, workers=args.workers if args.workers > 1 else None)
+        done, failures = render_rows_with(executor, rows, reg, data, quality=args.quality, device=args.device,
+                                          config_dirs=ctx.config_dirs, progress=not args.no_progress)
+    else:
+        done, failures = render_rows(rows, reg, data, quality=args.quality, workers=args.workers, device=args.device,
+                                     config_dirs=ctx.config_dirs, progress=not getattr(args, "no_progress", False),
+                                     quiet=not getattr(args, "verbose", False))
     skipped = len(rows) - len(done) - len(failures)
     print(f"rendered {len(done)}, skipped {skipped} complete, failed {len(failures)} of {len(rows)} "
           f"{args.split} examples ({args.quality}) into {data / args.split}")
@@ -364,5 +425,6 @@ def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
     return 0
 
 
-__all__ = ["Failure", "bundle_dir", "is_complete", "write_bundle", "render_spec", "render_to_bundle", "render_rows",
+__all__ = ["Failure", "RenderWorker", "bundle_dir", "is_complete", "write_bundle", "render_spec", "render_to_bundle",
+           "render_rows", "render_rows_with",
            "cmd_render", "cmd_show", "QUALITIES"]

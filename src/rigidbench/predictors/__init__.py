@@ -42,9 +42,50 @@ _failure_mode("mass", "counterfactuals:mass", "re-simulated with actor masses al
 _failure_mode("depth-offset", "counterfactuals:depth_offset", "actors re-rendered 0.5 s m nearer the camera",
               needs_blender=True)
 
+# Video models run locally through diffusers (paper, appendix B.1); options in predictors/local.py.
+PREDICTORS.add(PredictorInfo("wan-2.2", "rigidbench.predictors.wan:WanPredictor",
+                             "Wan 2.2 TI2V-5B (diffusers), 1280x704, 49 frames at 24 fps, 50 steps, bf16", Kind.LOCAL,
+                             aliases=("wan",)))
+PREDICTORS.add(PredictorInfo("cosmos-2.5", "rigidbench.predictors.cosmos:CosmosPredictor",
+                             "Cosmos Predict 2.5-2B post-trained (diffusers), 1280x704, 33 frames at 16 fps, 50 steps, "
+                             "bf16", Kind.LOCAL, aliases=("cosmos",)))
+
+
+ENTRY_POINT_GROUP = "rigidbench.predictors"
+
+
+def load_entry_points() -> list[str]:
+    """Register the predictors installed packages declare under the ``rigidbench.predictors`` entry-point
+    group (name = predictor name, value = "module:Class"); returns the names added. Nothing is imported."""
+    from importlib.metadata import entry_points
+
+    added = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name not in PREDICTORS:
+            PREDICTORS.add(PredictorInfo(ep.name, ep.value, f"plug-in from {ep.dist.name if ep.dist else ep.value}",
+                                         Kind.PLUGIN))
+            added.append(ep.name)
+    return added
+
+
+def _hosted(name: str, description: str) -> None:
+    PREDICTORS.add(PredictorInfo(name, "rigidbench.predictors.hosted:HostedPredictor", description, Kind.HOSTED))
+
+
+# Hosted video models through Replicate (paid; configs/models.yaml holds each one's inputs).
+_hosted("veo-3.1", "Google Veo 3.1 (google/veo-3.1), 4 s 720p 16:9, negative prompt")
+_hosted("veo-3.1-fast", "Google Veo 3.1 Fast (google/veo-3.1-fast), 4 s 720p 16:9, negative prompt")
+_hosted("kling-3.0", "Kling 3.0 (kwaivgi/kling-v3-video), 3 s pro mode 16:9, negative prompt")
+_hosted("seedance-2.0", "ByteDance Seedance 2.0 (bytedance/seedance-2.0), 4 s 720p 16:9")
+_hosted("seedance-2.0-fast", "ByteDance Seedance 2.0 Fast (bytedance/seedance-2.0-fast), 4 s 720p 16:9")
+_hosted("grok-imagine", "xAI Grok Imagine (xai/grok-imagine-video), 4 s 720p, automatic aspect ratio")
+
 
 def predictor_info(name: str) -> PredictorInfo:
-    """The registry entry for ``name``, or an ad-hoc plug-in entry for a "package.module:attr" path."""
+    """The registry entry for ``name`` (entry-point plug-ins included), or an ad-hoc plug-in entry for a
+    "package.module:attr" path."""
+    if name not in PREDICTORS:
+        load_entry_points()
     if name in PREDICTORS:
         return PREDICTORS[name]
     if ":" in name:
@@ -59,4 +100,4 @@ def failure_modes() -> tuple[str, ...]:
 
 
 __all__ = ["PREDICTORS", "FailureMode", "FunctionPredictor", "Kind", "ModelInputs", "PredictContext", "Prediction",
-           "Predictor", "PredictorInfo", "failure_modes", "model_inputs", "predictor_info"]
+           "Predictor", "PredictorInfo", "failure_modes", "load_entry_points", "model_inputs", "predictor_info"]

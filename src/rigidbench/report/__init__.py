@@ -2,12 +2,16 @@
 
 Writes into the output directory::
 
-    report.html                     every table and figure, the runs and their provenance
-    report.md                       the same tables in Markdown, figures linked
-    tables/<name>.md, .tex          model_metrics, ate3d_by_task, by_partition, paired_changes
+    report.html                     every table, figure and example, the runs and their provenance
+    report.md                       the same tables in Markdown, figures and filmstrips linked
+    tables/<name>.md, .tex          model_metrics, by_task, all_by_task, by_partition, all_by_partition,
+                                    paired_changes, poi_ate3d, poi_ssim
     tables/<name>.csv               model_metrics, by_task, by_partition, paired_changes, poi_matrix,
                                     correlation (long form, unrounded, unscaled)
     figures/<name>.png, .pdf        ssim_vs_ate3d, ate3d_by_task, metric_intervals, poi_heatmaps
+    examples/<id>/<row>.jpg, .mp4   filmstrips of a few examples: the reference and each prediction with
+                                    mask outlines, and looping clips (where the reference bundles and
+                                    predictions that run.json records are on this machine)
 
 matplotlib is imported only when figures are drawn.
 """
@@ -15,10 +19,12 @@ matplotlib is imported only when figures are drawn.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import analyse
+from rigidbench.report.examples import build_filmstrips
 from rigidbench.report.figures import build_figures
 from rigidbench.report.html import render_page
 from rigidbench.report.load import ReportError, ScoreTable, load_runs
@@ -26,44 +32,97 @@ from rigidbench.report.tables import build_tables, to_markdown, write_csvs, writ
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ReportError", "ScoreTable", "build_report", "cmd_report", "load_runs"]
+__all__ = ["ReportError", "ReportNotes", "ScoreTable", "build_report", "cmd_report", "load_runs"]
 
 # Which CSV files the HTML offers beside each table.
-_CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "ate3d_by_task": ("by_task.csv",),
-                  "by_partition": ("by_partition.csv",), "paired_changes": ("paired_changes.csv", "poi_matrix.csv")}
+_CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "by_task": ("by_task.csv",),
+                  "all_by_task": ("by_task.csv",), "by_partition": ("by_partition.csv",),
+                  "all_by_partition": ("by_partition.csv",), "paired_changes": ("paired_changes.csv",),
+                  "poi_ate3d": ("poi_matrix.csv",), "poi_ssim": ("poi_matrix.csv",)}
 
 
-def report_notes(data) -> list[str]:
-    """Plain-language notes on what the report could not do as usual (one run, skipped metrics, baseline)."""
+@dataclass(frozen=True)
+class ReportNotes:
+    """What the report could not do as usual, said once each.
+
+    status: whether the runs are official, with the reasons every unofficial run shares; extra_reasons:
+    run name -> its reasons beyond those; general: short notes for the page header; skipped_summary and
+    skipped: measurements not computed, one line and then one note per (measurement, reason).
+    """
+
+    status: str
+    official: bool
+    extra_reasons: dict[str, tuple[str, ...]]
+    general: tuple[str, ...]
+    skipped_summary: str
+    skipped: tuple[str, ...]
+
+    def lines(self) -> list[str]:
+        """Every note as plain text, in page order (report.md)."""
+        return [self.status, *self.general, *self.skipped]
+
+
+def official_status(runs) -> tuple[str, bool, dict[str, tuple[str, ...]]]:
+    """(one sentence on whether the runs are official, all official?, run -> reasons beyond the shared ones)."""
+    unofficial = [r for r in runs if not r.official]
+    if not unofficial:
+        return (f"Official: {'every run covers' if len(runs) > 1 else 'the run covers'} the whole evaluation split "
+                "with every measurement."), True, {}
+    shared = [x for x in unofficial[0].why_not_official if all(x in r.why_not_official for r in unofficial)]
+    extra = {r.name: tuple(x for x in r.why_not_official if x not in shared) for r in unofficial}
+    who = ("Not an official result" if len(unofficial) == len(runs)
+           else f"Not official for {', '.join(r.name for r in unofficial)}")
+    reason = (": " + "; ".join(shared) + "." if shared else " (the reasons for each run are under Runs).")
+    return who + reason, False, extra
+
+
+def _and(items: list[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def report_notes(data) -> ReportNotes:
+    """Plain-language notes on what the report could not do as usual: official status, one run, skipped metrics."""
     t = data.table
-    notes = list(t.notes)
+    general = list(t.notes)
     if len(t.models) == 1:
-        notes.append("Only one run was given: there are no paired comparisons or probability-of-improvement "
-                     "heatmaps, and no correlation across models.")
-    else:
-        base = t.models[data.baseline]
-        notes.append(f"Paired changes are against '{base}' (choose another with --baseline NAME; the default is "
-                     "the first run given that is not named 'reference': the reference scored against itself "
-                     "is a measurement floor, not a baseline).")
-    unranked = [name for name, r in zip(t.models, data.ranked) if not r]
-    if unranked:
-        notes.append(f"{', '.join(unranked)} is shown for comparison but takes no best / second-best marks.")
+        general.append("Only one run was given: there are no paired comparisons or probability-of-improvement "
+                       "matrices, and no correlation across models.")
     # One note per (measurement, reason), naming the runs it applies to: the reasons are long.
     groups: dict[tuple[str, str], list[str]] = {}
     for m, run in enumerate(t.runs):
         for k, s in zip(t.metrics, t.skipped[m]):
             if s:
                 groups.setdefault((k, run.skipped_metrics.get(k, "")), []).append(run.name)
-    for (k, reason), names in groups.items():
-        who = f"all {len(names)} runs" if len(names) == len(t.runs) > 1 else ", ".join(names)
-        notes.append(f"{METRICS[k].display_name} not computed for {who}" + (f": {reason}" if reason else "."))
-    if data.correlation is not None and not data.correlation.get("has_ci"):
-        notes.append("The SSIM / ATE-3D correlation has no bootstrap interval with fewer than 3 models.")
-    return notes
+
+    def who(names) -> str:
+        return f"all {len(names)} runs" if len(names) == len(t.runs) > 1 else ", ".join(names)
+
+    skipped = [f"{METRICS[k].display_name} not computed for {who(names)}" + (f": {reason}" if reason else ".")
+               for (k, reason), names in groups.items()]
+    by_metric: dict[str, list[str]] = {}
+    for (k, _), names in groups.items():
+        by_metric.setdefault(k, []).extend(n for n in names if n not in by_metric.get(k, []))
+    summary = ""
+    if by_metric:
+        names = [METRICS[k].display_name for k in by_metric]
+        runs_sets = {tuple(v) for v in by_metric.values()}
+        verb = "was" if len(names) == 1 else "were"
+        if len(runs_sets) == 1:
+            summary = f"{_and(names)} {verb} not computed for {who(next(iter(runs_sets)))}"
+        else:
+            summary = "Not computed: " + "; ".join(f"{METRICS[k].display_name} for {who(v)}"
+                                                   for k, v in by_metric.items())
+    status, official, extra = official_status(t.runs)
+    return ReportNotes(status, official, extra, tuple(general), summary, tuple(skipped))
 
 
-def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, baseline: str | None = None) -> Path:
-    """Read run directories, write tables, figures and report.html into out_dir. Returns the report.html path."""
+def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, baseline: str | None = None,
+                 examples: int = 3, clips: bool = True, outlines: str = "reference") -> Path:
+    """Read run directories, write tables, figures, example filmstrips and report.html into out_dir.
+
+    examples: how many examples get filmstrips (0: none); clips: also write their looping videos; outlines:
+    what the prediction rows outline, "reference" (where the objects should be) or "perceived" (the run's
+    perception cache). Returns the report.html path."""
     out_dir = Path(out_dir)
     table = load_runs(run_dirs)
     log.info("loaded %d runs over %d shared examples", len(table.models), len(table.example_ids))
@@ -77,22 +136,33 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     for key, files in table_files.items():
         files["csv"] = [csv_paths[name] for name in _CSV_FOR_TABLE.get(key, ()) if name in csv_paths]
     figures = build_figures(data, figures_dir)
+    strips = build_filmstrips(data, out_dir / "examples", n_examples=examples, clips=clips, outlines=outlines)
     notes = report_notes(data)
-    markdown = ["# RigidBench report", ""] + [f"- {n}" for n in notes] + [""]
+    markdown = ["# RigidBench report", ""] + [f"- {n}" for n in notes.lines()] + [""]
     for tb in tables:
         markdown.append(to_markdown(tb))
     for fig in figures:
         markdown += [f"### {fig.title}", "", f"![{fig.title}]({fig.png.relative_to(out_dir).as_posix()})", "",
                      fig.caption, ""]
+    if strips.note:
+        markdown += [strips.note, ""]
+    for ex in strips.examples:
+        markdown += [f"### Example {ex.sample_id} ({ex.task}, {ex.partition})", ""]
+        markdown += [f"- {row.label}: ![{row.label}]({row.image.relative_to(out_dir).as_posix()})"
+                     if row.image is not None else f"- {row.label}: {row.note}" for row in ex.rows]
+        markdown.append("")
     (out_dir / "report.md").write_text("\n".join(markdown))
     page = out_dir / "report.html"
-    page.write_text(render_page(data, notes, tables, table_files, figures, out_dir))
+    page.write_text(render_page(data, notes, tables, table_files, figures, out_dir, strips))
     log.info("wrote %s", page)
     return page
 
 
 def cmd_report(args, ctx=None) -> int:
-    """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed."""
-    page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline)
+    """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed; optional
+    args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived")."""
+    page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline,
+                        examples=getattr(args, "examples", 3), clips=not getattr(args, "no_clips", False),
+                        outlines=getattr(args, "outlines", "reference"))
     print(f"report for {len(args.runs)} run(s): {page}")
     return 0

@@ -129,25 +129,35 @@ def choose_baseline(models: tuple[str, ...], requested: str | None) -> int:
     return 0
 
 
-def rank_marks(means: np.ndarray, higher: bool, eligible: np.ndarray) -> list[str]:
+def rank_marks(means: np.ndarray, higher: bool, eligible: np.ndarray, decimals: int | None = None,
+               scale: float = 1.0) -> list[str]:
     """means: (M,) float; eligible: (M,) bool. Returns M marks 'best' / 'second' / ''.
 
-    Competition ranking over eligible finite means (ties share a rank, the next rank is skipped).
-    Rank 1 is 'best' and rank 2 'second', but only for a model that is strictly better than at least
-    one other eligible model, so two models never get both marks and a tie for last is unmarked.
+    Only a unique value is marked: 'best' for the one eligible finite mean strictly better than every
+    other, 'second' for the one strictly better than all but the best. A tie takes no mark (two
+    tied zeros are not both 'best'), and nothing below a tie is marked. With `decimals`, means are
+    compared as printed (rounded after multiplying by `scale`), so values that read the same tie.
     """
     means = np.asarray(means, dtype=np.float64)
     ok = np.asarray(eligible, dtype=bool) & np.isfinite(means)
-    signed = np.where(ok, means if higher else -means, np.nan)  # larger is better
-    marks = []
-    for i in range(len(means)):
-        if not ok[i]:
-            marks.append("")
-            continue
-        rank = 1 + int(np.sum(signed[ok] > signed[i]))
-        beats_someone = bool(np.any(signed[ok] < signed[i]))
-        marks.append({1: "best", 2: "second"}.get(rank, "") if beats_someone else "")
+    shown = np.round(means * scale, decimals) if decimals is not None else means
+    signed = np.where(ok, shown if higher else -shown, np.nan)  # larger is better
+    marks = [""] * len(means)
+    if ok.sum() < 2:
+        return marks
+    order = sorted(np.flatnonzero(ok), key=lambda i: -signed[i])
+    values = [signed[i] for i in order]
+    if values[0] > values[1]:
+        marks[order[0]] = "best"
+        if len(values) > 2 and values[1] > values[2]:
+            marks[order[1]] = "second"
     return marks
+
+
+def best_first_order(means: np.ndarray, higher: bool) -> np.ndarray:
+    """means: (M,) float. Returns (M,) int model order, best mean first, models without a mean last."""
+    key = np.where(np.isfinite(means), -means if higher else means, np.inf)
+    return np.argsort(key, kind="stable")
 
 
 def correlation_ssim_ate3d(overall: Intervals, metrics: tuple[str, ...], resamples: int, seed: int) -> dict | None:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rigidbench.metrics import METRICS
-from rigidbench.report.analysis import ReportData, task_label
+from rigidbench.report.analysis import ReportData, best_first_order, task_label
 from rigidbench.report.tables import display_scale, metric_label
 
 log = logging.getLogger(__name__)
@@ -180,12 +180,6 @@ def metric_intervals(data: ReportData, out_dir: Path) -> FigureFile:
                f"({data.resamples:,} resamples). Models follow the same row order in every panel."
                + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
     return _save(fig, out_dir, "metric_intervals", "Uncertainty across all measurements", caption)
-
-
-def best_first_order(means: np.ndarray, higher: bool) -> np.ndarray:
-    """means: (M,) float. Returns (M,) int model order, best mean first, models without a mean last."""
-    key = np.where(np.isfinite(means), -means if higher else means, np.inf)
-    return np.argsort(key, kind="stable")
 
 
 def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:

@@ -1,8 +1,9 @@
 """Read evaluation run directories (runs/<model>/, written by `rigidbench evaluate`) into one array.
 
 A run directory holds ``results.json`` (aggregates, official flag, skipped measurements),
-``run.json`` (model, perception backend, settings) and ``examples/<id>.json`` (the ten scalars of
-one example, null where non-finite, with its task and partition). `load_runs` aligns every run on
+``run.json`` (model, perception backend, settings, the predictions and reference directories) and
+``examples/<id>.json`` (the ten scalars of one example, null where non-finite, with its task and
+partition). `load_runs` aligns every run on
 the example ids that all runs share and returns scores (models, examples, metrics) with NaN for
 a non-finite or skipped measurement.
 """
@@ -39,6 +40,8 @@ class RunInfo:
     n_examples: int
     n_reference: int | None
     finished_at: str
+    predictions: str = ""  # the predictions directory and reference split as run.json recorded them
+    data: str = ""
 
 
 @dataclass(frozen=True)
@@ -119,6 +122,8 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
         n_examples=len(records),
         n_reference=results.get("n_reference"),
         finished_at=str(run.get("finished_at", "")),
+        predictions=str(run.get("predictions") or ""),
+        data=str(run.get("data") or ""),
     )
     return info, records
 

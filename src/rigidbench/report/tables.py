@@ -1,10 +1,13 @@
 """The report's tables as one cell model, rendered to Markdown, LaTeX (booktabs) and HTML, plus tidy CSV.
 
 Tables mirror the paper: model x ten metrics (mean and 95% bootstrap interval, best bold and
-second-best underlined in each column), ATE-3D by task, all metrics by evaluation partition, and
-paired changes against a baseline with the probability of improvement. A mean taken over fewer
-than all examples carries its finite count ("0.123 (n=97)"). CSV files hold the unrounded,
-unscaled numbers in long form (one row per model and metric) and round-trip exactly.
+second-best underlined in each column, a tie as printed taking no mark), ATE-3D and SSIM by task
+and by evaluation partition (every metric in a second, means-only table for each), paired changes
+and probabilities of improvement against a baseline, and the model x model probability-of-
+improvement matrix for ATE-3D and SSIM. Numbers print to about three significant figures at the
+column's typical magnitude. A mean taken over fewer than all examples carries its finite count
+("0.123 (n=97)"). CSV files hold the unrounded, unscaled numbers in long form (one row per model
+and metric) and round-trip exactly.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from rigidbench.metrics import GROUPS, METRICS
-from rigidbench.report.analysis import ReportData, partition_label, rank_marks, task_label
+from rigidbench.report.analysis import ReportData, best_first_order, partition_label, rank_marks, task_label
 
 # Display-only scale factors (the paper prints BGDrift x 10^3); CSV files stay unscaled.
 # The paper's two column groups of the model table: six object measurements, four image measurements.
@@ -43,12 +46,14 @@ def display_scale(metric: str) -> float:
 
 @dataclass(frozen=True)
 class Cell:
-    """One table entry: main `text`, optional interval `detail` and count `note`; `mark` best/second/significant."""
+    """One table entry: main `text`, optional interval `detail` and count `note`; `mark` best/second/significant;
+    `shade` a probability in [0, 1] that HTML shows as a blue (above 0.5) or red (below) background."""
 
     text: str
     detail: str = ""
     note: str = ""
     mark: str = ""
+    shade: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,7 @@ class Table:
     n_label_columns: int = 1
     groups: tuple[tuple[str, int], ...] = ()
     row_breaks: tuple[int, ...] = field(default=())
+    vertical_header: bool = False  # HTML: column headings after the label columns run bottom to top
 
 
 # ------------------------------------------------------------------------------- number formats
@@ -123,128 +129,219 @@ def value_cell(mean: float, lo: float, hi: float, n_finite: int, n_total: int, d
 
 # ------------------------------------------------------------------------------------- builders
 
+# The paper's two headline measurements, the ones its task and partition tables and its
+# probability-of-improvement figure show: 3D trajectory error against image similarity.
+HEADLINE = ("ate3d", "ssim")
+
+
+def headline_metrics(metrics: tuple[str, ...]) -> tuple[str, ...]:
+    """The headline measurements present in `metrics` (the first two metrics if neither is)."""
+    return tuple(m for m in HEADLINE if m in metrics) or tuple(metrics[:2])
+
+
+def column_decimals(means: np.ndarray, metric: str) -> int:
+    """Decimals for one metric's column of means (any shape), after its display scale."""
+    return decimals_for(np.asarray(means, dtype=np.float64) * display_scale(metric))
+
+
+def marks_for(means: np.ndarray, metric: str, eligible: np.ndarray, decimals: int) -> list[str]:
+    """Best / second marks of one column, comparing the means as printed (see `rank_marks`)."""
+    return rank_marks(means, METRICS[metric].higher_is_better, eligible, decimals, display_scale(metric))
+
+
+def scale_note(metrics) -> str:
+    return "".join(f" {METRICS[m].display_name} is multiplied by {METRICS[m].display_scale:g}."
+                   for m in metrics if METRICS[m].display_scale != 1.0)
+
+
+def _unranked_note(data: ReportData) -> str:
+    unranked = [name for name, r in zip(data.table.models, data.ranked) if not r]
+    return f" {', '.join(unranked)} is shown for comparison and not ranked." if unranked else ""
+
+
+MARKS_NOTE = "Bold: best, underlined: second best, among unique values as printed (ties take no mark)."
+
 
 def model_table(data: ReportData) -> Table:
     """Model x ten metrics: mean [95% CI], best / second-best per metric marked."""
     t = data.table
     n = len(t.example_ids)
-    rows = []
     columns = []
     for k, metric in enumerate(t.metrics):
         scale = display_scale(metric)
-        decimals = decimals_for(data.overall.mean[:, k] * scale)
-        marks = rank_marks(data.overall.mean[:, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
+        decimals = column_decimals(data.overall.mean[:, k], metric)
+        marks = marks_for(data.overall.mean[:, k], metric, data.ranked & ~t.skipped[:, k], decimals)
         columns.append([value_cell(data.overall.mean[m, k], data.overall.lo[m, k], data.overall.hi[m, k],
                                    int(data.overall.n_finite[m, k]), n, decimals, marks[m], bool(t.skipped[m, k]),
                                    scale=scale) for m in range(len(t.models))])
-    for m, model in enumerate(t.models):
-        rows.append((Cell(model),) + tuple(col[m] for col in columns))
-    unranked = [name for name, r in zip(t.models, data.ranked) if not r]
-    caption = (f"Means over the {n} evaluation examples with 95% percentile bootstrap intervals "
-               f"({data.resamples:,} resamples over examples), omitting non-finite measurements; "
-               "n=... gives the finite count where some were non-finite. Best and second-best values per "
-               "metric are bold and underlined (arrows give the better direction)."
-               + "".join(f" {METRICS[m].display_name} is multiplied by {METRICS[m].display_scale:g}."
-                         for m in t.metrics if METRICS[m].display_scale != 1.0)
-               + (f" {', '.join(unranked)} is shown for comparison and not ranked." if unranked else ""))
-    groups = metric_groups(t.metrics)
-    return Table("model_metrics", "Model comparison", caption, ("Model",) + tuple(metric_label(m) for m in t.metrics),
-                 ("",) + tuple(metric_arrow(m) for m in t.metrics), tuple(rows), groups=groups)
-
-
-def task_table(data: ReportData, metric: str = "ate3d") -> Table:
-    """Model x task for one metric (default ATE-3D): mean [95% CI], best / second-best per task."""
-    t = data.table
-    k = t.metric_index(metric)
-    counts = {task: int(np.sum(t.tasks == task)) for task in data.tasks}
-    decimals = decimals_for(data.by_task.mean[:, :, k])
-    columns = []
-    for g, task in enumerate(data.tasks):
-        iv = data.by_task
-        marks = rank_marks(iv.mean[:, g, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
-        columns.append([value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k], int(iv.n_finite[m, g, k]),
-                                   counts[task], decimals, marks[m], bool(t.skipped[m, k]))
-                        for m in range(len(t.models))])
     rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
-    name = METRICS[metric].display_name
-    direction = "Higher" if METRICS[metric].higher_is_better else "Lower"
-    caption = (f"{name} by task. Each cell is the mean over that task's examples "
-               f"({', '.join(f'{task_label(x)}: {counts[x]}' for x in data.tasks)}) with its 95% bootstrap interval. "
-               f"{direction} is better; best and second-best values are bold and underlined.")
-    return Table(f"{metric}_by_task", f"{name} by task", caption, ("Model",) + tuple(task_label(x) for x in data.tasks),
-                 ("",) + (metric_arrow(metric),) * len(data.tasks), rows)
+    caption = (f"Means over the {n} evaluation examples, 95% percentile bootstrap interval below "
+               f"({data.resamples:,} resamples over examples); non-finite measurements are left out and n= gives "
+               f"the finite count where there were some. Arrows give the better direction. {MARKS_NOTE}"
+               + scale_note(t.metrics) + _unranked_note(data))
+    return Table("model_metrics", "Model comparison", caption, ("Model",) + tuple(metric_label(m) for m in t.metrics),
+                 ("",) + tuple(metric_arrow(m) for m in t.metrics), rows, groups=metric_groups(t.metrics))
 
 
-def partition_table(data: ReportData) -> Table:
-    """(partition, model) x ten metrics: means only (intervals in the CSV), marks within each partition."""
+def _grouping(data: ReportData, by: str):
+    """(per-example labels, group ids in display order, Intervals (M, G, K), label function) for 'task' or
+    'partition'."""
     t = data.table
-    iv = data.by_partition
-    decimals = [decimals_for(iv.mean[:, :, k] * display_scale(metric)) for k, metric in enumerate(t.metrics)]
+    if by == "task":
+        return t.tasks, data.tasks, data.by_task, task_label
+    if by == "partition":
+        return t.partitions, data.partitions, data.by_partition, partition_label
+    raise ValueError(f"unknown grouping {by!r}; use 'task' or 'partition'")
+
+
+_GROUP_WORDS = {"task": ("task", "by_task.csv"),
+                "partition": ("evaluation partition", "by_partition.csv")}
+_PARTITION_NOTE = ("ID: training scenes and objects; Scene, Object, Both: held-out scenes, objects, or both.")
+
+
+def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None = None) -> Table:
+    """Model x (metric, group) for a few metrics (default the headline ATE-3D and SSIM), as the paper's task
+    and partition tables: mean [95% CI] per cell, best / second-best within each group."""
+    t = data.table
+    labels, groups, iv, label = _grouping(data, by)
+    metrics = metrics or headline_metrics(t.metrics)
+    counts = [int(np.sum(labels == g)) for g in groups]
+    columns, header, spans = [], [], []
+    for metric in metrics:
+        k = t.metric_index(metric)
+        decimals = column_decimals(iv.mean[:, :, k], metric)
+        for g in range(len(groups)):
+            marks = marks_for(iv.mean[:, g, k], metric, data.ranked & ~t.skipped[:, k], decimals)
+            columns.append([value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k], int(iv.n_finite[m, g, k]),
+                                       counts[g], decimals, marks[m], bool(t.skipped[m, k]),
+                                       scale=display_scale(metric)) for m in range(len(t.models))])
+        header += [label(g) for g in groups]
+        spans.append((f"{metric_label(metric)}{_ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
+    rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
+    word, csv_name = _GROUP_WORDS[by]
+    names = " and ".join(METRICS[m].display_name for m in metrics)
+    sizes = ", ".join(f"{label(g)} {c}" for g, c in zip(groups, counts))
+    caption = (f"{names} by {word}: the mean over that {word}'s examples ({sizes}) with its 95% bootstrap interval. "
+               + (_PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
+               + f" Every measurement by {word} is in the table below and in {csv_name}." + scale_note(metrics))
+    return Table(f"by_{by}", f"By {word}", caption, ("Model",) + tuple(header), ("",) * (1 + len(header)), rows,
+                 groups=tuple(spans))
+
+
+def all_metrics_table(data: ReportData, by: str) -> Table:
+    """(group, model) x every metric: means only (intervals in the CSV), marks within each group."""
+    t = data.table
+    labels, groups, iv, label = _grouping(data, by)
+    decimals = [column_decimals(iv.mean[:, :, k], metric) for k, metric in enumerate(t.metrics)]
     rows, breaks = [], []
-    for g, part in enumerate(data.partitions):
-        n = int(np.sum(t.partitions == part))
+    for g, group in enumerate(groups):
+        n = int(np.sum(labels == group))
         breaks.append(len(rows))
-        marks = [rank_marks(iv.mean[:, g, k], METRICS[metric].higher_is_better, data.ranked & ~t.skipped[:, k])
+        marks = [marks_for(iv.mean[:, g, k], metric, data.ranked & ~t.skipped[:, k], decimals[k])
                  for k, metric in enumerate(t.metrics)]
         for m, model in enumerate(t.models):
             cells = tuple(value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k], int(iv.n_finite[m, g, k]), n,
                                      decimals[k], marks[k][m], bool(t.skipped[m, k]), with_interval=False,
                                      scale=display_scale(metric))
                           for k, metric in enumerate(t.metrics))
-            label = f"{partition_label(part)} ({n})" if m == 0 else ""
-            rows.append((Cell(label), Cell(model)) + cells)
-    caption = ("All measurements by evaluation partition (ID: training scenes and objects; Scene, Object, Both: "
-               "held-out scenes, objects or both; examples per partition in parentheses). Means only; the 95% "
-               "intervals are in by_partition.csv. Best and second-best within each partition are bold and "
-               "underlined." + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
-    return Table("by_partition", "Measurements by evaluation partition", caption,
-                 ("Partition", "Model") + tuple(metric_label(m) for m in t.metrics),
+            rows.append((Cell(f"{label(group)} ({n})" if m == 0 else ""), Cell(model)) + cells)
+    word, csv_name = _GROUP_WORDS[by]
+    caption = (f"Every measurement by {word} (examples in parentheses), means only; the 95% intervals are in "
+               f"{csv_name}. " + (_PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
+               + scale_note(t.metrics))
+    return Table(f"all_by_{by}", f"All measurements by {word}", caption,
+                 (word.split()[-1].capitalize(), "Model") + tuple(metric_label(m) for m in t.metrics),
                  ("", "") + tuple(metric_arrow(m) for m in t.metrics), tuple(rows), n_label_columns=2,
-                 row_breaks=tuple(breaks[1:]))
+                 row_breaks=tuple(breaks[1:]), groups=metric_groups(t.metrics))
 
 
 def paired_table(data: ReportData) -> Table | None:
-    """(model, metric) rows: mean paired change vs the baseline and PoI over it, each with 95% CI; None for one run."""
+    """Two rows per model (Δ and PoI against the baseline) x every metric, each with its paired 95% CI; None for
+    one run."""
     t = data.table
     if len(t.models) < 2:
         return None
     base = t.models[data.baseline]
+    n = len(t.example_ids)
     d, p = data.paired_diff, data.paired_poi
     rows, breaks = [], []
-    others = [m for m in range(len(t.models)) if m != data.baseline]
-    for m in others:
+    decimals = [column_decimals(np.array([d.mean[:, k], d.lo[:, k], d.hi[:, k]]), metric)
+                for k, metric in enumerate(t.metrics)]
+    for m in (m for m in range(len(t.models)) if m != data.baseline):
         breaks.append(len(rows))
+        diffs, pois = [], []
         for k, metric in enumerate(t.metrics):
-            scale = display_scale(metric)
+            scale, matched = display_scale(metric), int(d.n_finite[m, k])
             if t.skipped[m, k] or t.skipped[data.baseline, k]:
-                cells = (Cell("skipped"), Cell(""), Cell("skipped"), Cell(""), Cell("0"))
+                diffs.append(Cell("skipped"))
+                pois.append(Cell("skipped"))
+                continue
+            if matched == 0:
+                diffs.append(Cell("n/a"))
+                pois.append(Cell("n/a"))
+                continue
+            note = f"n={matched}" if matched < n else ""
+            diff_sig = "significant" if (d.lo[m, k] > 0 or d.hi[m, k] < 0) else ""
+            poi_sig = "significant" if (p.lo[m, k] > 0.5 or p.hi[m, k] < 0.5) else ""
+            diffs.append(Cell(fmt(d.mean[m, k] * scale, decimals[k], signed=True),
+                              interval_text(d.lo[m, k] * scale, d.hi[m, k] * scale, decimals[k], signed=True),
+                              note, diff_sig))
+            pois.append(Cell(fmt(p.mean[m, k], 2), interval_text(p.lo[m, k], p.hi[m, k], 2), "", poi_sig,
+                             shade=float(p.mean[m, k])))
+        rows.append((Cell(t.models[m]), Cell("Δ")) + tuple(diffs))
+        rows.append((Cell(""), Cell("PoI")) + tuple(pois))
+    caption = (f"Paired comparisons with {base} on matched examples (choose another baseline with --baseline NAME). "
+               f"Δ: mean of (model − {base}); PoI: the probability of improvement, the fraction of examples on "
+               f"which the model is better than {base}, ties counting one half (shaded blue above 0.5, red below). "
+               f"Each has a paired 95% bootstrap interval ({data.resamples:,} resamples); bold entries have an "
+               "interval that excludes 0 (Δ) or 0.5 (PoI). The arrows say which sign of Δ is better; n= counts "
+               "the examples finite for both where some were not." + scale_note(t.metrics))
+    return Table("paired_changes", f"Paired comparisons with {base}", caption,
+                 ("Model", "") + tuple(metric_label(m) for m in t.metrics),
+                 ("", "") + tuple(metric_arrow(m) for m in t.metrics), tuple(rows), n_label_columns=2,
+                 groups=metric_groups(t.metrics), row_breaks=tuple(breaks[1:]))
+
+
+def poi_table(data: ReportData, metric: str) -> Table | None:
+    """The (M, M) matched probability-of-improvement matrix for one metric, models ordered best first, as in the
+    paper's figure; None with one model or when no model has the metric."""
+    t = data.table
+    k = t.metric_index(metric)
+    if len(t.models) < 2 or len(data.poi_matrices) <= k or t.skipped[:, k].all():
+        return None
+    pm = data.poi_matrices[k]
+    order = best_first_order(data.overall.mean[:, k], METRICS[metric].higher_is_better)
+    rows = []
+    for i in order:
+        cells = []
+        for j in order:
+            est = pm.estimate[i, j]
+            if i == j:
+                cells.append(Cell("·"))
+            elif not math.isfinite(est):
+                cells.append(Cell("n/a"))
             else:
-                dec = decimals_for(np.array([d.mean[:, k], d.lo[:, k], d.hi[:, k]]) * scale)
-                diff_sig = "significant" if (d.lo[m, k] > 0 or d.hi[m, k] < 0) else ""
-                poi_sig = "significant" if (p.lo[m, k] > 0.5 or p.hi[m, k] < 0.5) else ""
-                cells = (Cell(fmt(d.mean[m, k] * scale, dec, signed=True), mark=diff_sig),
-                         Cell(interval_text(d.lo[m, k] * scale, d.hi[m, k] * scale, dec, signed=True)),
-                         Cell(fmt(p.mean[m, k], 2), mark=poi_sig), Cell(interval_text(p.lo[m, k], p.hi[m, k], 2)),
-                         Cell(str(int(d.n_finite[m, k]))))
-            rows.append((Cell(t.models[m] if k == 0 else ""), Cell(metric_label(metric))) + cells)
-    caption = (f"Paired changes against {base} on matched examples: mean of (model − {base}) and the probability "
-               f"of improvement PoI (fraction of examples on which the model is better than {base}, ties counting "
-               f"one half), each with a paired 95% bootstrap interval ({data.resamples:,} resamples). Positive "
-               "changes are better for IoU and SSIM, negative for every other metric; bold entries have an "
-               "interval that excludes 0 (change) or 0.5 (PoI). n counts the examples finite for both models."
-               + "".join(f" {METRICS[m].display_name} is multiplied by {METRICS[m].display_scale:g}."
-                         for m in t.metrics if METRICS[m].display_scale != 1.0))
-    return Table("paired_changes", f"Paired changes against {base}", caption,
-                 ("Model", "Metric", f"Δ vs {base}", "95% CI", "PoI", "95% CI", "n"),
-                 ("",) * 7, tuple(rows), n_label_columns=2, row_breaks=tuple(breaks[1:]))
+                cells.append(Cell(fmt(est, 2), mark="significant" if pm.significant[i, j] else "", shade=float(est)))
+        rows.append((Cell(t.models[i]),) + tuple(cells))
+    name = METRICS[metric].display_name
+    caption = (f"{name}: the probability that the row model is better than the column model on the same example "
+               f"(ties count one half), over the examples finite for both. Rows and columns are ordered by the "
+               f"model mean, best first; bold entries have a paired 95% bootstrap interval ({data.resamples:,} "
+               "resamples) that excludes 0.5 (on the HTML page, cells shade blue above 0.5 and red below). Every "
+               "measurement's matrix is in poi_matrix.csv.")
+    return Table(f"poi_{metric}", f"{name}{_ARROW_TEXT[metric_arrow(metric)]}: probability of improvement", caption,
+                 ("Row beats column",) + tuple(t.models[j] for j in order), ("",) * (1 + len(order)), tuple(rows),
+                 vertical_header=True)
 
 
 def build_tables(data: ReportData) -> list[Table]:
     """Every table of the report, in display order."""
-    tables = [model_table(data), task_table(data), partition_table(data)]
+    tables = [model_table(data), breakdown_table(data, "task"), all_metrics_table(data, "task"),
+              breakdown_table(data, "partition"), all_metrics_table(data, "partition")]
     paired = paired_table(data)
     if paired is not None:
         tables.append(paired)
+    tables += [tb for tb in (poi_table(data, m) for m in headline_metrics(data.table.metrics)) if tb is not None]
     return tables
 
 
@@ -281,7 +378,7 @@ def to_markdown(table: Table) -> str:
 _TEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
                 "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
                 "×": r"$\times$", "³": r"$^3$", "−": "$-$", "Δ": r"$\Delta$", "↑": r"$\uparrow$",
-                "↓": r"$\downarrow$"}
+                "↓": r"$\downarrow$", "·": r"$\cdot$", "—": "---"}
 
 
 def tex_escape(text: str) -> str:
@@ -330,6 +427,15 @@ def to_latex(table: Table) -> str:
     return "\n".join(lines)
 
 
+def shade_color(p: float) -> str:
+    """A probability in [0, 1] as a light background: white at 0.5, blue towards 1, red towards 0 (text stays
+    black on every shade)."""
+    strength = min(abs(p - 0.5) * 2.0, 1.0) * 0.62
+    end = (33, 102, 172) if p > 0.5 else (178, 24, 43)  # the ends of matplotlib's RdBu, as in the heatmaps
+    r, g, b = (round(255 + (c - 255) * strength) for c in end)
+    return f"#{r:02x}{g:02x}{b:02x}"
+
+
 def _html_cell(cell: Cell, tag: str = "td") -> str:
     text = html.escape(cell.text)
     if cell.mark in ("best", "significant"):
@@ -341,19 +447,26 @@ def _html_cell(cell: Cell, tag: str = "td") -> str:
     if cell.note:
         text += f' <span class="n">({html.escape(cell.note)})</span>'
     css = ' class="skipped"' if cell.text in ("skipped", "n/a") else ""
-    return f"<{tag}{css}>{text}</{tag}>"
+    style = f' style="background:{shade_color(cell.shade)}"' if math.isfinite(cell.shade) else ""
+    return f"<{tag}{css}{style}>{text}</{tag}>"
 
 
 def to_html(table: Table) -> str:
     """An HTML <table> (classes for the page's inline CSS) followed by its caption."""
-    lines = ['<table class="results">', "<thead>"]
+    css = "results vertical" if table.vertical_header else "results"
+    lines = [f'<table class="{css}" id="table-{table.key}">', "<thead>"]
     if table.groups:
         cells = [f'<th colspan="{table.n_label_columns}"></th>']
         cells += [f'<th colspan="{w}" class="group">{html.escape(label)}</th>' for label, w in table.groups]
         lines.append("<tr>" + "".join(cells) + "</tr>")
-    lines.append("<tr>" + "".join(f'<th{" class=label" if i < table.n_label_columns else ""}>'
-                                  f"{html.escape(h + _ARROW_TEXT[a])}</th>"
-                                  for i, (h, a) in enumerate(zip(table.header, table.arrows))) + "</tr>")
+    heads = []
+    for i, (h, a) in enumerate(zip(table.header, table.arrows)):
+        text = html.escape(h + _ARROW_TEXT[a])
+        if i < table.n_label_columns:
+            heads.append(f"<th class=label>{text}</th>")
+        else:
+            heads.append(f'<th><span class="vh">{text}</span></th>' if table.vertical_header else f"<th>{text}</th>")
+    lines.append("<tr>" + "".join(heads) + "</tr>")
     lines += ["</thead>", "<tbody>"]
     for i, row in enumerate(table.rows):
         css = ' class="break"' if i in table.row_breaks else ""
@@ -389,7 +502,8 @@ def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
     paths = []
     rows = []
     for k, metric in enumerate(t.metrics):
-        marks = rank_marks(data.overall.mean[:, k], hib[k], data.ranked & ~t.skipped[:, k])
+        decimals = column_decimals(data.overall.mean[:, k], metric)
+        marks = marks_for(data.overall.mean[:, k], metric, data.ranked & ~t.skipped[:, k], decimals)
         for m, model in enumerate(t.models):
             o = data.overall
             rows.append([model, metric, int(hib[k]), _num(o.mean[m, k]), _num(o.lo[m, k]), _num(o.hi[m, k]),
@@ -403,7 +517,8 @@ def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
         for g, group in enumerate(names):
             n_group = int(np.sum(labels == group))
             for k, metric in enumerate(t.metrics):
-                marks = rank_marks(iv.mean[:, g, k], hib[k], data.ranked & ~t.skipped[:, k])
+                decimals = column_decimals(iv.mean[:, :, k], metric)
+                marks = marks_for(iv.mean[:, g, k], metric, data.ranked & ~t.skipped[:, k], decimals)
                 for m, model in enumerate(t.models):
                     rows.append([model, group, metric, _num(iv.mean[m, g, k]), _num(iv.lo[m, g, k]),
                                  _num(iv.hi[m, g, k]), int(iv.n_finite[m, g, k]), n_group, marks[m]])

@@ -1,0 +1,247 @@
+"""How a stage's per-example work runs: in this process, on a Ray cluster, or as one shard of n.
+
+A stage describes its work as a *worker*: a class ``Worker(job)`` whose instances are called
+once per item, ``worker(item) -> dict``, where ``job`` is a JSON-serialisable description of the
+run (the run context's configuration directories and device, the stage's options, the shared
+output directory). Workers write their per-example outputs atomically into the shared
+directory themselves and return a small record; the stage driver decides which items still need
+work (resume), records failures, shows progress and writes the run-level summary. So the same
+example gives the same files whichever executor ran it.
+
+- ``LocalExecutor``: one worker in this process, items one after another (or ``threads`` at once).
+- ``RayExecutor``: Ray actors (a worker each, so a model loads once per actor) with the resources
+  the stage asks for (``num_gpus=1`` for a GPU model, CPUs for rendering), ``max_restarts`` and
+  ``max_task_retries`` so an example whose worker died runs again elsewhere, and a bounded number
+  of items in flight. Ray is an optional extra (``pip install 'rigidbench[ray]'``).
+- ``Shard(i, n)``: not an executor but a selection: the i-th of n deterministic, disjoint parts of
+  the items (by position in the sorted item list), for job arrays of schedulers without Ray.
+
+A worker's ``__call__`` raises only for bugs: it returns ``{"status": "failed", "error": ...}`` for
+an example whose input is bad (a ``RigidBenchError`` or an I/O error), like the local loops do.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+from .errors import UserError
+from .registry import load_target
+
+log = logging.getLogger(__name__)
+
+EXECUTORS = ("local", "ray")
+
+
+@dataclass(frozen=True)
+class Shard:
+    """The ``index``-th of ``count`` parts of a sorted item list: items k with k % count == index."""
+
+    index: int = 0
+    count: int = 1
+
+    @classmethod
+    def parse(cls, text: str | None) -> "Shard":
+        """'i/n' with 0 <= i < n (None: the whole list)."""
+        if text is None:
+            return cls()
+        try:
+            i, n = (int(v) for v in str(text).split("/"))
+        except ValueError:
+            raise UserError(f"--shard {text}: expected i/n, e.g. 0/4 (the first of four shards)") from None
+        if n < 1 or not 0 <= i < n:
+            raise UserError(f"--shard {text}: need 0 <= i < n")
+        return cls(i, n)
+
+    def select(self, items: Sequence) -> list:
+        """The items of this shard, in their order; the n shards partition ``items``."""
+        return [item for k, item in enumerate(items) if k % self.count == self.index]
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"
+
+
+@dataclass(frozen=True)
+class Resources:
+    """What one worker needs: CPUs and GPUs (Ray schedules by these; locally they are advisory)."""
+
+    num_cpus: float = 1.0
+    num_gpus: float = 0.0
+
+
+@dataclass
+class Executor:
+    """Base: ``map`` yields (item, record) as items finish, in completion order."""
+
+    name: str = "local"
+
+    def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
+        """Run ``worker`` ("module:Class", built as Class(job)) on every item; ``on_result(item, record)`` is
+        called on this process as each finishes. ``instance``: a ready worker a local executor uses instead
+        (it may hold objects that cannot travel, e.g. models a test built)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass
+class LocalExecutor(Executor):
+    """One worker in this process; ``threads`` > 1 calls it from that many threads (it must be thread-safe)."""
+
+    name: str = "local"
+    threads: int = 1
+
+    def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
+        if not items:
+            return []
+        instance = instance if instance is not None else load_target(worker, "worker")(job)
+        out: list[tuple[Any, dict]] = []
+        try:
+            if self.threads <= 1:
+                for item in items:
+                    record = instance(item)
+                    out.append((item, record))
+                    if on_result:
+                        on_result(item, record)
+            else:
+                with ThreadPoolExecutor(max_workers=self.threads) as pool:
+                    for item, record in zip(items, pool.map(instance, items)):
+                        out.append((item, record))
+                        if on_result:
+                            on_result(item, record)
+        finally:
+            close = getattr(instance, "close", None)
+            if close is not None:
+                close()
+        return out
+
+
+class _RayWorkerHost:
+    """The Ray actor: builds one worker from the job and calls it per item."""
+
+    def __init__(self, worker: str, job: dict):
+        self.worker = load_target(worker, "worker")(job)
+
+    def run(self, item):
+        return self.worker(item)
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+@dataclass
+class RayExecutor(Executor):
+    """Ray actors on a cluster (``address``; None starts or joins a local one).
+
+    ``workers``: actors to start (default: as many as the cluster's resources allow, at most the
+    number of items); ``max_in_flight``: items submitted and not yet finished, per actor 2 by
+    default; ``max_retries``: how often an item whose actor died is run again (on a restarted actor)."""
+
+    name: str = "ray"
+    address: str | None = None
+    workers: int | None = None
+    max_in_flight: int | None = None
+    max_retries: int = 3
+    init_options: dict = field(default_factory=dict)
+
+    def _ray(self):
+        try:
+            import ray
+        except ModuleNotFoundError:
+            raise UserError("--executor ray needs Ray: pip install -e '.[ray]' (or pip install 'rigidbench[ray]')") \
+                from None
+        if not ray.is_initialized():
+            ray.init(address=self.address, ignore_reinit_error=True, log_to_driver=False, **self.init_options)
+        return ray
+
+    def default_workers(self, resources: Resources) -> int:
+        """How many workers with ``resources`` the cluster holds at once (at least 1)."""
+        return self._actor_count(self._ray(), resources, 1 << 30)
+
+    def _actor_count(self, ray, resources: Resources, n_items: int) -> int:
+        if self.workers:
+            return max(1, min(self.workers, n_items))
+        total = ray.cluster_resources()
+        fit = []
+        if resources.num_cpus:
+            fit.append(int(total.get("CPU", 1) // resources.num_cpus))
+        if resources.num_gpus:
+            fit.append(int(total.get("GPU", 0) // resources.num_gpus))
+        return max(1, min([n_items] + [f for f in fit if f > 0] or [1]))
+
+    def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
+        if not items:
+            return []
+        ray = self._ray()
+        total = ray.cluster_resources()
+        if resources.num_gpus > total.get("GPU", 0):
+            raise UserError(f"this stage needs {resources.num_gpus:g} GPU per worker but the Ray cluster has "
+                            f"{total.get('GPU', 0):g}; add GPU nodes or run it on CPUs with --device cpu")
+        host = ray.remote(_RayWorkerHost).options(
+            num_cpus=resources.num_cpus, num_gpus=resources.num_gpus,
+            max_restarts=self.max_retries, max_task_retries=self.max_retries)
+        actors = [host.remote(worker, job) for _ in range(self._actor_count(ray, resources, len(items)))]
+        limit = self.max_in_flight or 2 * len(actors)
+        pending: dict[Any, tuple[Any, Any]] = {}  # object ref -> (item, actor)
+        queue = list(items)
+        idle = list(actors) * max(1, limit // len(actors))
+        out: list[tuple[Any, dict]] = []
+        try:
+            while queue or pending:
+                while queue and idle and len(pending) < limit:
+                    actor = idle.pop(0)
+                    item = queue.pop(0)
+                    pending[actor.run.remote(item)] = (item, actor)
+                done, _ = ray.wait(list(pending), num_returns=1)
+                for ref in done:
+                    item, actor = pending.pop(ref)
+                    idle.append(actor)
+                    try:
+                        record = ray.get(ref)
+                    except ray.exceptions.RayActorError as exc:  # retries exhausted: the worker kept dying
+                        record = {"status": "failed", "error": f"worker died {self.max_retries + 1} times: "
+                                                               f"{type(exc).__name__}"}
+                    except ray.exceptions.RayTaskError as exc:  # a bug inside the worker: stop, as locally
+                        raise exc.as_instanceof_cause() from None
+                    out.append((item, record))
+                    if on_result:
+                        on_result(item, record)
+        finally:
+            for actor in actors:
+                ray.kill(actor)
+        return out
+
+
+def make_executor(name: str = "local", *, ray_address: str | None = None, threads: int = 1,
+                  workers: int | None = None) -> Executor:
+    """The executor ``--executor`` names ("local" or "ray")."""
+    if name == "local":
+        return LocalExecutor(threads=threads)
+    if name == "ray":
+        return RayExecutor(address=ray_address, workers=workers)
+    raise UserError(f"--executor {name}: choose one of {', '.join(EXECUTORS)}")
+
+
+def failure_record(exc: BaseException) -> dict:
+    """The record of an example whose input was bad."""
+    return {"status": "failed", "error": str(exc)}
+
+
+def timed(fn: Callable[[], dict]) -> dict:
+    """Run ``fn`` and add its wall time in seconds to the record it returns."""
+    t0 = time.time()
+    record = fn()
+    record.setdefault("seconds", round(time.time() - t0, 3))
+    return record
+
+
+__all__ = ["EXECUTORS", "Executor", "LocalExecutor", "RayExecutor", "Resources", "Shard", "failure_record", "make_executor",
+           "timed"]

@@ -1,0 +1,492 @@
+"""The hosted video models (Veo 3.1 and its fast variant, Kling 3.0, Seedance 2.0 and its fast
+variant, Grok Imagine), called through Replicate's HTTP API with ``replicate.ReplicateClient``.
+
+One ``HostedPredictor`` class serves all of them: it finds its row of ``configs/models.yaml`` (a
+copy in a ``--config`` directory replaces the packaged file) by its registry name. That row holds
+the Replicate model, the names of the inputs that receive the first frame, the prompt and the
+negative prompt, and the fixed inputs exactly as the paper's table gives them; nothing about a
+model is written in code.
+
+Every example sends the first frame resized to 1280x720 as a JPEG (a data URI when small enough,
+else an upload through the files endpoint), the task prompt with the paper's suffix and, for models
+that take one, the paper's negative prompt. No seed is sent: the paper's table lists every input of
+its calls and none is a seed (``seed_field`` in the YAML sends ``--seed`` to a model that takes one).
+
+Resume: right after a prediction is created its id is stored in ``OUT/.hosted/<id>.json``. A rerun
+of an example with a stored id fetches that prediction instead of creating a new one: a succeeded
+prediction is downloaded again, one still running is waited for, and only a failed or canceled one
+is created anew. So an interrupted download never costs a second paid prediction. A succeeded
+prediction whose output Replicate has already deleted (after about an hour) fails the example with
+that reason; the option ``repay_expired`` (``--repay-expired``) pays for a new one instead.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import io
+import json
+import logging
+import os
+import re
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..config import config_file, read_config_yaml
+from ..errors import ConfigError, PredictionError, UserError
+from ..video import VIDEO_EXTENSIONS
+from .base import PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
+from .replicate import (TOKEN_ENV, CallStats, ClientSettings, Deadline, ReplicateClient, ReplicateError,
+                        base_url_from_env, output_url, public_url)
+
+log = logging.getLogger(__name__)
+
+MODELS_FILE = "models.yaml"
+STATE_DIR = ".hosted"  # hidden: validate, evaluate and the predict stage's scan skip it
+RESTART_STATUSES = ("failed", "canceled", "aborted")
+_SLUG = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*/[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+# -- configs/models.yaml ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HostedModel:
+    """One row of models.yaml: the Replicate model, where each input goes, and the fixed inputs."""
+
+    name: str
+    replicate: str  # owner/name
+    image_field: str
+    prompt_field: str
+    negative_prompt_field: str | None
+    seed_field: str | None
+    inputs: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class ImageSettings:
+    width: int = 1280
+    height: int = 720
+    jpeg_quality: int = 95
+    upload_threshold_bytes: int = 1_000_000
+
+
+@dataclass(frozen=True)
+class HostedConfig:
+    path: Path
+    models: Mapping[str, HostedModel]
+    image: ImageSettings
+    client: ClientSettings
+
+    def model(self, name: str) -> HostedModel:
+        if name not in self.models:
+            raise ConfigError(f"{self.path}: field 'models': no entry for '{name}'; entries: "
+                              f"{', '.join(sorted(self.models)) or 'none'}")
+        return self.models[name]
+
+
+def _fail(path: Path, name: str, message: str) -> ConfigError:
+    return ConfigError(f"{path}: field '{name}': {message}")
+
+
+def _mapping(path: Path, name: str, value: Any, allowed: tuple[str, ...] | None = None) -> Mapping:
+    if not isinstance(value, Mapping):
+        raise _fail(path, name, f"expected a mapping, got {value!r}")
+    for key in value:
+        if not isinstance(key, str):
+            raise _fail(path, name, f"keys must be strings, got {key!r}")
+        if allowed is not None and key not in allowed:
+            raise _fail(path, f"{name}.{key}" if name else key, f"unknown field; known fields: {', '.join(allowed)}")
+    return value
+
+
+def _string(path: Path, name: str, value: Any, optional: bool = False) -> str | None:
+    if value is None and optional:
+        return None
+    if not isinstance(value, str) or not value:
+        raise _fail(path, name, f"expected a non-empty string{' or null' if optional else ''}, got {value!r}")
+    return value
+
+
+def _number(path: Path, name: str, value: Any, kind: type, lo: float) -> Any:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)):
+        raise _fail(path, name, f"expected {'an integer' if kind is int else 'a number'}, got {value!r}")
+    if value < lo:
+        raise _fail(path, name, f"must be >= {lo:g}, got {value}")
+    return kind(value)
+
+
+def _flat(path: Path, section: str, data: Any, cls: type, lows: Mapping[str, float]) -> Any:
+    """A dataclass of numbers from one section, every field optional (the dataclass default)."""
+    names = tuple(f.name for f in fields(cls))
+    data = _mapping(path, section, {} if data is None else data, names)
+    values = {}
+    for f in fields(cls):
+        if f.name in data:
+            kind = int if isinstance(f.default, int) else float
+            values[f.name] = _number(path, f"{section}.{f.name}", data[f.name], kind, lows.get(f.name, 0))
+    return cls(**values)
+
+
+def parse_models(path: Path, data: Any) -> HostedConfig:
+    """Validate models.yaml; ConfigError names the file and the field."""
+    path = Path(path)
+    root = _mapping(path, "", data, ("models", "image", "client"))
+    if "models" not in root:
+        raise _fail(path, "models", "is required but missing")
+    rows = _mapping(path, "models", root["models"])
+    if not rows:
+        raise _fail(path, "models", "expected at least one model")
+    models = {}
+    for name, row in rows.items():
+        prefix = f"models.{name}"
+        row = _mapping(path, prefix, row, ("replicate", "image_field", "prompt_field", "negative_prompt_field",
+                                           "seed_field", "inputs"))
+        for required in ("replicate", "image_field", "prompt_field", "inputs"):
+            if required not in row:
+                raise _fail(path, f"{prefix}.{required}", "is required but missing")
+        slug = _string(path, f"{prefix}.replicate", row["replicate"])
+        if not _SLUG.match(slug):
+            raise _fail(path, f"{prefix}.replicate", f"expected an official model as 'owner/name', got {slug!r}")
+        inputs = _mapping(path, f"{prefix}.inputs", row["inputs"])
+        for key, value in inputs.items():
+            if not (value is None or isinstance(value, (str, bool, int, float))):
+                raise _fail(path, f"{prefix}.inputs.{key}", f"expected a string, number or boolean, got {value!r}")
+        model = HostedModel(name=str(name), replicate=slug,
+                            image_field=_string(path, f"{prefix}.image_field", row["image_field"]),
+                            prompt_field=_string(path, f"{prefix}.prompt_field", row["prompt_field"]),
+                            negative_prompt_field=_string(path, f"{prefix}.negative_prompt_field",
+                                                          row.get("negative_prompt_field"), optional=True),
+                            seed_field=_string(path, f"{prefix}.seed_field", row.get("seed_field"), optional=True),
+                            inputs=dict(inputs))
+        wired = [f for f in (model.image_field, model.prompt_field, model.negative_prompt_field, model.seed_field) if f]
+        if len(set(wired)) != len(wired):
+            raise _fail(path, prefix, f"two of image_field, prompt_field, negative_prompt_field and seed_field name "
+                                      f"the same input: {wired}")
+        for f in wired:
+            if f in inputs:
+                raise _fail(path, f"{prefix}.inputs.{f}", "this input is filled per example; remove it from inputs")
+        models[model.name] = model
+    image = _flat(path, "image", root.get("image"), ImageSettings,
+                  {"width": 16, "height": 16, "jpeg_quality": 1, "upload_threshold_bytes": 0})
+    if image.jpeg_quality > 100:
+        raise _fail(path, "image.jpeg_quality", f"must lie in [1, 100], got {image.jpeg_quality}")
+    client = _flat(path, "client", root.get("client"), ClientSettings,
+                   {"request_timeout_s": 0.001, "wait_s": 1, "poll_interval_s": 0.0, "poll_max_interval_s": 0.0,
+                    "max_retries": 0, "example_timeout_s": 0.001, "max_output_bytes": 1})
+    if client.wait_s > 60:
+        raise _fail(path, "client.wait_s", f"Replicate holds a request at most 60 s, got {client.wait_s}")
+    return HostedConfig(path=path, models=models, image=image, client=client)
+
+
+def load_hosted_config(extra_dirs=()) -> HostedConfig:
+    """models.yaml from the packaged configs or the last ``extra_dirs`` that has one."""
+    path = config_file(MODELS_FILE, extra_dirs)
+    return parse_models(path, read_config_yaml(path))
+
+
+# -- the first frame --------------------------------------------------------------------------------
+
+
+def encode_first_frame(image: np.ndarray, settings: ImageSettings) -> bytes:
+    """(H,W,3) uint8 -> JPEG bytes at settings.width x settings.height (Lanczos)."""
+    from PIL import Image
+
+    pil = Image.fromarray(np.ascontiguousarray(image[..., :3]).astype(np.uint8, copy=False))
+    if pil.size != (settings.width, settings.height):
+        pil = pil.resize((settings.width, settings.height), Image.Resampling.LANCZOS)
+    out = io.BytesIO()
+    pil.save(out, format="JPEG", quality=settings.jpeg_quality)
+    return out.getvalue()
+
+
+def data_uri(jpeg: bytes) -> str:
+    return "data:image/jpeg;base64," + base64.b64encode(jpeg).decode("ascii")
+
+
+# -- per-example state (resume) ------------------------------------------------------------------------
+
+
+def _write_json_atomic(path: Path, doc: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=1, sort_keys=True)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _read_state(path: Path) -> dict | None:
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); the example starts a new prediction", path, exc)
+        return None
+    return doc if isinstance(doc, dict) and isinstance(doc.get("prediction_id"), str) else None
+
+
+# -- the predictor --------------------------------------------------------------------------------------
+
+
+class HostedPredictor(Predictor):
+    """A hosted video model on Replicate, configured by its row of models.yaml (found by registry name)."""
+
+    paid = True
+
+    def __init__(self, info: PredictorInfo):
+        super().__init__(info)
+        self._lock = threading.Lock()
+        self._configs: dict[tuple, HostedConfig] = {}
+        self._client: ReplicateClient | None = None
+        self._state_dirs: set[Path] = set()
+
+    # -- configuration ---------------------------------------------------------------------------
+
+    def config(self, ctx: PredictContext) -> HostedConfig:
+        key = tuple(str(d) for d in ctx.run.config_dirs)
+        with self._lock:
+            if key not in self._configs:
+                self._configs[key] = load_hosted_config(ctx.run.config_dirs)
+            return self._configs[key]
+
+    def model(self, ctx: PredictContext) -> HostedModel:
+        return self.config(ctx).model(self.info.name)
+
+    def concurrency(self, ctx: PredictContext) -> int:
+        value = ctx.option("concurrency", 8)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise UserError(f"--concurrency must be a positive integer, got {value!r}")
+        return value
+
+    def settings(self, ctx: PredictContext) -> dict[str, Any]:
+        """What makes the videos differ: the model, its fixed inputs, the image as sent and the seed (None:
+        the model is sent none, see the module docstring)."""
+        cfg, model = self.config(ctx), self.model(ctx)
+        return {"model": model.replicate, "inputs": dict(model.inputs),
+                "fields": {"image": model.image_field, "prompt": model.prompt_field,
+                           "negative_prompt": model.negative_prompt_field, "seed": model.seed_field},
+                "image": {"width": cfg.image.width, "height": cfg.image.height, "format": "jpeg",
+                          "jpeg_quality": cfg.image.jpeg_quality},
+                "seed": ctx.seed if model.seed_field else None}
+
+    def generation_info(self, ctx: PredictContext) -> dict[str, Any]:
+        cfg, model = self.config(ctx), self.model(ctx)
+        return {
+            "provider": "replicate", "api": public_url(base_url_from_env()), "model": model.replicate,
+            "revision": "the official model's current version on Replicate (each example records its 'version')",
+            "inputs": dict(model.inputs),
+            "fields": {"image": model.image_field, "prompt": model.prompt_field,
+                       "negative_prompt": model.negative_prompt_field, "seed": model.seed_field},
+            "negative_prompt_sent": model.negative_prompt_field is not None,
+            "seed": (f"--seed sent as '{model.seed_field}'" if model.seed_field else
+                     "none sent: the paper's inputs for this model have no seed, so generations are not reproducible"),
+            "image": {**asdict(cfg.image), "format": "jpeg", "resize": "Lanczos",
+                      "sent_as": f"data URI under {cfg.image.upload_threshold_bytes:,} bytes, else POST /v1/files"},
+            "client": cfg.client.as_dict(), "concurrency": self.concurrency(ctx), "config": str(cfg.path),
+        }
+
+    # -- the request --------------------------------------------------------------------------------
+
+    def _inputs(self, model: HostedModel, inputs, image_ref: str, ctx: PredictContext) -> dict[str, Any]:
+        body = {model.image_field: image_ref, model.prompt_field: inputs.prompt}
+        if model.negative_prompt_field:
+            body[model.negative_prompt_field] = inputs.negative_prompt
+        if model.seed_field:
+            body[model.seed_field] = int(ctx.seed)
+        body.update(model.inputs)
+        return body
+
+    def describe(self, sample, ctx: PredictContext) -> dict[str, Any]:
+        """The request a run would send (the image elided, the token never)."""
+        cfg, model = self.config(ctx), self.model(ctx)
+        inputs = model_inputs(sample)
+        jpeg = encode_first_frame(inputs.image, cfg.image)
+        uri_bytes = len(data_uri(jpeg))
+        how = ("a data URI" if uri_bytes < cfg.image.upload_threshold_bytes
+               else "the URL of an upload to POST /v1/files")
+        image = (f"<{inputs.image_path.name} as a {cfg.image.width}x{cfg.image.height} JPEG of {len(jpeg):,} bytes, "
+                 f"sent as {how}; elided>")
+        owner, _, name = model.replicate.partition("/")
+        out = {"method": "POST", "url": f"{public_url(base_url_from_env())}/v1/models/{owner}/{name}/predictions",
+               "headers": {"Authorization": f"Bearer ${TOKEN_ENV}", "Prefer": "wait"},
+               "body": {"input": self._inputs(model, inputs, image, ctx)}}
+        if ctx.out_dir is not None:
+            state = _read_state(Path(ctx.out_dir) / STATE_DIR / f"{Path(sample.path).name}.json")
+            if state and state.get("status") not in RESTART_STATUSES:
+                out["resumes_prediction"] = state["prediction_id"]
+        return out
+
+    # -- running ------------------------------------------------------------------------------------
+
+    def _get_client(self, ctx: PredictContext) -> ReplicateClient:
+        """One client (one connection pool) for the whole run; the token is read here, on first use."""
+        cfg, workers = self.config(ctx), self.concurrency(ctx)
+        with self._lock:
+            if self._client is None:
+                self._client = ReplicateClient(cfg.client, max_connections=workers + 4)
+            return self._client
+
+    def predict(self, sample, ctx: PredictContext) -> Prediction:
+        cfg, model = self.config(ctx), self.model(ctx)
+        client = self._get_client(ctx)
+        sample_id = Path(sample.path).name
+        if ctx.out_dir is None:
+            raise PredictionError(f"example {sample_id}: hosted models need the run's output directory "
+                                  "(run them through the predict stage)")
+        state_dir = Path(ctx.out_dir) / STATE_DIR
+        with self._lock:
+            self._state_dirs.add(state_dir)
+        state_path = state_dir / f"{sample_id}.json"
+        deadline = Deadline(cfg.client.example_timeout_s)
+        stats = CallStats()
+        timings: dict[str, float] = {}
+
+        t0 = time.monotonic()
+        inputs = model_inputs(sample)
+        jpeg = encode_first_frame(inputs.image, cfg.image)
+        fingerprint = hashlib.sha256(json.dumps(
+            {"model": model.replicate, "input": self._inputs(model, inputs, hashlib.sha256(jpeg).hexdigest(), ctx)},
+            sort_keys=True).encode()).hexdigest()
+        timings["image_s"] = time.monotonic() - t0
+
+        prediction, resumed, replaced = None, False, None
+        state = _read_state(state_path)
+        if state and state.get("fingerprint") == fingerprint and state.get("status") not in RESTART_STATUSES:
+            prediction = self._resume(client, state["prediction_id"], sample_id, deadline, stats,
+                                      bool(ctx.option("repay_expired", False)))
+            resumed = prediction is not None
+            if prediction is None:
+                replaced = state["prediction_id"]
+        elif state and state.get("status") in RESTART_STATUSES:
+            replaced = state["prediction_id"]
+
+        sent_as = None
+        if prediction is None:
+            t0 = time.monotonic()
+            uri = data_uri(jpeg)
+            if len(uri) < cfg.image.upload_threshold_bytes:
+                image_ref, sent_as = uri, "data URI"
+            else:
+                image_ref = client.upload(jpeg, f"{sample_id}.jpg", "image/jpeg", deadline, stats)
+                sent_as = "upload"
+            timings["upload_s"] = time.monotonic() - t0
+            t0 = time.monotonic()
+            prediction = client.create(model.replicate, self._inputs(model, inputs, image_ref, ctx), deadline, stats)
+            timings["create_s"] = time.monotonic() - t0
+            _write_json_atomic(state_path, {"prediction_id": prediction["id"], "model": model.replicate,
+                                            "fingerprint": fingerprint, "status": prediction.get("status"),
+                                            "created_at": prediction.get("created_at")})
+        pid = prediction["id"]
+
+        t0 = time.monotonic()
+        try:
+            prediction = client.wait(prediction, deadline, stats)
+        except PredictionError as exc:
+            raise PredictionError(f"{exc}; prediction {pid} is kept in {state_path}, a rerun resumes it without "
+                                  "paying again") from None
+        finally:
+            timings["wait_s"] = time.monotonic() - t0
+        status = prediction.get("status")
+        if status != "succeeded":
+            _write_json_atomic(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
+                                            "fingerprint": fingerprint})
+            error = prediction.get("error") or "no error message"
+            raise PredictionError(f"prediction {pid} {status}: {client.scrub(str(error))}")
+        url = output_url(prediction.get("output"))
+        if url is None:
+            raise PredictionError(f"prediction {pid} succeeded without a video URL in its output")
+        suffix = Path(url.split("?", 1)[0]).suffix.lower()
+        suffix = suffix if suffix in VIDEO_EXTENSIONS else ".mp4"
+        t0 = time.monotonic()
+        try:
+            video, size = client.download(url, state_dir / f"{sample_id}{suffix}", deadline, stats)
+        except PredictionError as exc:
+            raise PredictionError(f"prediction {pid}: {exc}") from None
+        timings["download_s"] = time.monotonic() - t0
+        _write_json_atomic(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
+                                        "fingerprint": fingerprint, "downloaded": True})
+        return Prediction(video_path=video, metadata=self._metadata(prediction, model, ctx, stats, timings, resumed,
+                                                                     replaced, sent_as, size))
+
+    def _resume(self, client: ReplicateClient, pid: str, sample_id: str, deadline: Deadline,
+                stats: CallStats, repay_expired: bool = False) -> dict | None:
+        """The stored prediction, to wait for or download again; None when it must be created anew."""
+        try:
+            prediction = client.get(pid, deadline, stats)
+        except ReplicateError as exc:
+            if exc.status_code == 404:
+                log.warning("example %s: stored prediction %s is unknown to Replicate; creating a new one",
+                            sample_id, pid)
+                return None
+            raise PredictionError(f"example {sample_id}: cannot fetch stored prediction {pid} ({exc}); not creating "
+                                  "a new one, rerun later") from None
+        status = prediction.get("status")
+        if status in RESTART_STATUSES:
+            log.info("example %s: stored prediction %s %s; creating a new one", sample_id, pid, status)
+            return None
+        if status == "succeeded" and (prediction.get("data_removed") or output_url(prediction.get("output")) is None):
+            if not repay_expired:  # never pay twice without being asked to
+                raise PredictionError(f"example {sample_id}: prediction {pid} succeeded but Replicate has deleted its "
+                                      "output (outputs are kept for an hour); rerun with --repay-expired to pay for "
+                                      "a new prediction")
+            log.warning("example %s: prediction %s succeeded but Replicate has deleted its output; creating a new, "
+                        "paid, prediction (--repay-expired)", sample_id, pid)
+            return None
+        log.info("example %s: resuming prediction %s (%s) without creating a new one", sample_id, pid, status)
+        return prediction
+
+    def _metadata(self, prediction: dict, model: HostedModel, ctx: PredictContext, stats: CallStats,
+                  timings: dict[str, float], resumed: bool, replaced: str | None, sent_as: str | None,
+                  size: int) -> dict[str, Any]:
+        # "status" is the stage's own key (it is "succeeded" here): the API's is recorded as prediction_status.
+        meta: dict[str, Any] = {
+            "prediction_id": prediction["id"], "prediction_status": prediction.get("status"),
+            "model": prediction.get("model") or model.replicate, "version": prediction.get("version"),
+            "created_at": prediction.get("created_at"), "started_at": prediction.get("started_at"),
+            "completed_at": prediction.get("completed_at"), "metrics": prediction.get("metrics") or {},
+            "resumed": resumed, "image_sent_as": sent_as, "output_bytes": size,
+            "requests": stats.requests, "retries": stats.retries,
+            "retried": {"rate_limited": stats.rate_limited, "server_errors": stats.server_errors,
+                        "network_errors": stats.network_errors},
+            "client_seconds": {k: round(v, 3) for k, v in timings.items()},
+            "seed": int(ctx.seed) if model.seed_field else None,
+        }
+        if model.negative_prompt_field is None:
+            meta["negative_prompt"] = None  # not sent to this model
+        if replaced:
+            meta["replaces_prediction"] = replaced
+        for key, value in prediction.items():  # any cost or billing facts the API adds
+            if any(word in key.lower() for word in ("cost", "price", "billing")):
+                meta[key] = value
+        return meta
+
+    def close(self) -> None:
+        """Close the connection pool and remove downloads the stage has already copied into place."""
+        with self._lock:
+            client, self._client = self._client, None
+            state_dirs = list(self._state_dirs)
+        if client is not None:
+            client.close()
+        for state_dir in state_dirs:
+            for video in state_dir.glob("*") if state_dir.is_dir() else []:
+                if video.suffix.lower() not in VIDEO_EXTENSIONS or video.name.startswith("."):
+                    continue
+                final = state_dir.parent / video.name
+                try:
+                    if final.is_file() and final.stat().st_size == video.stat().st_size:
+                        video.unlink()
+                except OSError:
+                    pass

@@ -1,0 +1,403 @@
+"""A small client for Replicate's HTTP prediction API (httpx), for the hosted video models.
+
+Protocol: ``POST {base}/v1/models/{owner}/{name}/predictions`` with ``{"input": {...}}`` and
+``Prefer: wait`` creates a prediction (Replicate holds the request until it finishes or up to 60 s);
+``GET {base}/v1/predictions/{id}`` is polled until its status is ``succeeded``, ``failed`` or
+``canceled``; the output URL is downloaded at once (Replicate deletes outputs after an hour). Images
+too large for a data URI go through ``POST {base}/v1/files`` (multipart field ``content``).
+
+The base URL is ``$REPLICATE_BASE_URL`` or https://api.replicate.com; the token is read only from
+``$REPLICATE_API_TOKEN``, sent only to the base URL's host (never with a download) and removed from
+every message this module produces (httpx messages included), so no file, log line or exception
+of ours carries it.
+
+Robustness: every request has a timeout, bounded by the example's deadline; HTTP 429 waits for
+``Retry-After`` when given, else exponential backoff with jitter; 5xx and network errors are retried
+with the same bounded backoff, then fail with the API's message. A creation request is never
+repeated after it may have reached Replicate without an answer (a read error): that could pay twice.
+Downloads are refused past a size cap, kept only if they decode as video, and written atomically.
+Every failure is a ``PredictionError`` (a ``RigidBenchError``), which the predict stage records.
+"""
+
+from __future__ import annotations
+
+import email.utils
+import json
+import logging
+import os
+import random
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+from urllib.parse import urlsplit, urlunsplit
+
+import httpx
+
+from ..errors import PredictionError, UserError, VideoError
+from ..video import check_decodable, probe_video
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BASE_URL = "https://api.replicate.com"
+TOKEN_ENV = "REPLICATE_API_TOKEN"
+BASE_URL_ENV = "REPLICATE_BASE_URL"
+TERMINAL = ("succeeded", "failed", "canceled", "aborted")
+REDACTED = "[REDACTED]"
+_CHUNK = 1 << 16
+
+
+@dataclass(frozen=True)
+class ClientSettings:
+    """Limits of the client (configs/models.yaml, section ``client``); see that file for each field."""
+
+    request_timeout_s: float = 30.0
+    wait_s: int = 60
+    poll_interval_s: float = 2.0
+    poll_max_interval_s: float = 10.0
+    max_retries: int = 6
+    backoff_base_s: float = 1.0
+    backoff_max_s: float = 60.0
+    example_timeout_s: float = 1800.0
+    max_output_bytes: int = 300_000_000
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class CallStats:
+    """What one example's calls cost in retries (recorded in generation.json)."""
+
+    requests: int = 0
+    rate_limited: int = 0  # HTTP 429 answers retried
+    server_errors: int = 0  # HTTP 5xx answers retried
+    network_errors: int = 0  # connection or read failures retried
+
+    @property
+    def retries(self) -> int:
+        return self.rate_limited + self.server_errors + self.network_errors
+
+
+class ReplicateError(PredictionError):
+    """A request to Replicate that failed for good; the message carries the API's own message."""
+
+    def __init__(self, message: str, status_code: int | None = None):
+        super().__init__(message)
+        self.status_code = status_code
+
+
+@dataclass
+class Deadline:
+    """The per-example time limit: every wait and request timeout is cut to what is left of it."""
+
+    seconds: float
+    start: float = field(default_factory=time.monotonic)
+
+    def left(self) -> float:
+        return self.seconds - (time.monotonic() - self.start)
+
+    def check(self, what: str) -> float:
+        left = self.left()
+        if left <= 0:
+            raise PredictionError(f"{what}: gave up after the per-example timeout of {self.seconds:g} s "
+                                  "(client.example_timeout_s in models.yaml)")
+        return left
+
+
+def base_url_from_env() -> str:
+    """``$REPLICATE_BASE_URL`` (without a trailing "/" or "/v1") or Replicate's API."""
+    base = os.environ.get(BASE_URL_ENV, "").strip() or DEFAULT_BASE_URL
+    parts = urlsplit(base)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise UserError(f"{BASE_URL_ENV} must be an http(s) URL such as {DEFAULT_BASE_URL}, got {public_url(base)!r}")
+    base = base.rstrip("/")
+    return base[:-3] if base.endswith("/v1") else base
+
+
+def public_url(url: str) -> str:
+    """``url`` without user information, query or fragment (safe to record)."""
+    parts = urlsplit(url)
+    host = parts.hostname or ""
+    if parts.port:
+        host = f"{host}:{parts.port}"
+    return urlunsplit((parts.scheme, host, parts.path, "", ""))
+
+
+def token_from_env() -> str:
+    token = os.environ.get(TOKEN_ENV, "").strip()
+    if not token:
+        raise UserError(f"{TOKEN_ENV} is not set: hosted models call Replicate's API with your API token; "
+                        f"export {TOKEN_ENV}=... (https://replicate.com/account/api-tokens) or use --dry-run")
+    return token
+
+
+def output_url(output: Any) -> str | None:
+    """The video URL of a prediction's ``output``: a URL string, or the first one of a list or mapping."""
+    if isinstance(output, str):
+        return output
+    if isinstance(output, (list, tuple)):
+        for item in output:
+            if (url := output_url(item)) is not None:
+                return url
+    if isinstance(output, dict):
+        for key in ("video", "output", "url"):
+            if (url := output_url(output.get(key))) is not None:
+                return url
+    return None
+
+
+class ReplicateClient:
+    """Thread-safe: one instance serves every example of a run (one connection pool)."""
+
+    def __init__(self, settings: ClientSettings, *, base_url: str | None = None, token: str | None = None,
+                 max_connections: int = 16, sleep: Callable[[float], None] = time.sleep):
+        self.settings = settings
+        self.base_url = (base_url or base_url_from_env()).rstrip("/")
+        self._token = token if token is not None else token_from_env()
+        self._api_host = urlsplit(self.base_url).netloc
+        self._sleep = sleep
+        self._rng = random.Random()
+        self._rng_lock = threading.Lock()
+        limits = httpx.Limits(max_connections=max_connections, max_keepalive_connections=max_connections)
+        # No default headers: the token is added per request, to API requests only.
+        self._http = httpx.Client(limits=limits, follow_redirects=False, trust_env=False)
+
+    def __repr__(self) -> str:  # never the token
+        return f"ReplicateClient({public_url(self.base_url)!r})"
+
+    def close(self) -> None:
+        self._http.close()
+
+    # -- the API -----------------------------------------------------------------------------------
+
+    def create(self, model: str, inputs: dict[str, Any], deadline: Deadline, stats: CallStats) -> dict[str, Any]:
+        """Create a prediction of official model "owner/name"; returns the prediction (finished when
+        Replicate could finish it within the ``Prefer: wait`` window)."""
+        owner, _, name = model.partition("/")
+        url = f"{self.base_url}/v1/models/{owner}/{name}/predictions"
+        wait = max(1, min(60, int(self.settings.wait_s)))
+        headers = {"Prefer": "wait" if wait == 60 else f"wait={wait}"}
+        response = self._request("POST", url, f"creating a {model} prediction", deadline, stats, json_body={"input": inputs},
+                                 headers=headers, read_timeout=self.settings.request_timeout_s + wait, idempotent=False)
+        return self._prediction(response, f"creating a {model} prediction")
+
+    def get(self, prediction_id: str, deadline: Deadline, stats: CallStats) -> dict[str, Any]:
+        """The prediction ``prediction_id`` as Replicate has it now (always read from the base URL)."""
+        what = f"prediction {prediction_id}"
+        response = self._request("GET", f"{self.base_url}/v1/predictions/{prediction_id}", what, deadline, stats)
+        return self._prediction(response, what)
+
+    def wait(self, prediction: dict[str, Any], deadline: Deadline, stats: CallStats) -> dict[str, Any]:
+        """Poll until the prediction is finished (succeeded, failed or canceled)."""
+        interval = self.settings.poll_interval_s
+        while prediction.get("status") not in TERMINAL:
+            what = f"prediction {prediction['id']} ({prediction.get('status')})"
+            self._pause(interval, deadline, what)
+            interval = min(interval * 1.5, self.settings.poll_max_interval_s)
+            prediction = self.get(prediction["id"], deadline, stats)
+        return prediction
+
+    def upload(self, data: bytes, filename: str, content_type: str, deadline: Deadline, stats: CallStats) -> str:
+        """Upload ``data`` through the files endpoint; returns the URL a model input may name."""
+        what = f"uploading {filename}"
+        response = self._request("POST", f"{self.base_url}/v1/files", what, deadline, stats,
+                                 files={"content": (filename, data, content_type)})
+        body = self._json(response, what)
+        url = (body.get("urls") or {}).get("get") if isinstance(body, dict) else None
+        if not isinstance(url, str):
+            raise ReplicateError(f"{what}: Replicate's answer has no urls.get")
+        return url
+
+    def download(self, url: str, dest: Path, deadline: Deadline, stats: CallStats) -> tuple[Path, int]:
+        """Download ``url`` to ``dest`` (atomically, without the token) if it is under the size cap and
+        decodes as video; returns (dest, bytes)."""
+        if urlsplit(url).scheme not in ("http", "https"):
+            raise PredictionError(f"the output {url[:60]!r} is not an http(s) URL")
+        what = f"downloading {public_url(url)}"
+        cap = self.settings.max_output_bytes
+        dest = Path(dest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        attempt = 0
+        while True:
+            left = deadline.check(what)
+            stats.requests += 1
+            fd, tmp_name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.stem}.", suffix=f".part{dest.suffix}")
+            tmp = Path(tmp_name)
+            try:
+                try:
+                    with os.fdopen(fd, "wb") as fh, self._http.stream(
+                            "GET", url, timeout=self._timeout(left), follow_redirects=True) as response:
+                        if response.status_code == 429 or response.status_code >= 500:
+                            raise _Retry(response.status_code, _retry_after(response), self._message(response))
+                        if response.status_code >= 400:
+                            raise PredictionError(f"{what}: HTTP {response.status_code} "
+                                                  f"{self._message(response)}")
+                        declared = response.headers.get("content-length")
+                        if declared is not None and declared.isdigit() and int(declared) > cap:
+                            raise PredictionError(f"{what}: the output is {int(declared):,} bytes, over the cap of "
+                                                  f"{cap:,} (client.max_output_bytes); refused")
+                        size = 0
+                        for chunk in response.iter_bytes(_CHUNK):
+                            size += len(chunk)
+                            if size > cap:
+                                raise PredictionError(f"{what}: the output passed the cap of {cap:,} bytes "
+                                                      "(client.max_output_bytes); refused")
+                            fh.write(chunk)
+                            if deadline.left() <= 0:
+                                deadline.check(what)
+                        fh.flush()
+                        os.fsync(fh.fileno())
+                except httpx.TransportError as exc:
+                    raise _Retry(None, None, self.scrub(f"{type(exc).__name__}: {exc}")) from None
+                _check_video(tmp, what)
+                tmp.replace(dest)
+                return dest, size
+            except _Retry as retry:
+                attempt = self._retry_or_fail(retry, attempt, what, deadline, stats)
+            finally:
+                if tmp.exists():
+                    tmp.unlink()
+
+    # -- plumbing ----------------------------------------------------------------------------------
+
+    def _headers(self, extra: dict[str, str] | None = None) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self._token}", "User-Agent": "rigidbench", **(extra or {})}
+
+    def _timeout(self, left: float, read: float | None = None) -> httpx.Timeout:
+        t = min(self.settings.request_timeout_s, max(left, 0.001))
+        return httpx.Timeout(t, read=min(read if read is not None else t, max(left, 0.001)))
+
+    def scrub(self, text: str) -> str:
+        """``text`` with the token replaced by [REDACTED]."""
+        text = str(text)
+        if self._token:
+            text = text.replace(self._token, REDACTED)
+        return text
+
+    def _request(self, method: str, url: str, what: str, deadline: Deadline, stats: CallStats, *,
+                 json_body: Any = None, files: Any = None, headers: dict[str, str] | None = None,
+                 read_timeout: float | None = None, idempotent: bool = True) -> httpx.Response:
+        if urlsplit(url).netloc != self._api_host:  # the token goes to the API's host only
+            raise PredictionError(f"{what}: refusing to send the API token to {public_url(url)}")
+        attempt = 0
+        while True:
+            left = deadline.check(what)
+            stats.requests += 1
+            try:
+                response = self._http.request(method, url, json=json_body, files=files, headers=self._headers(headers),
+                                              timeout=self._timeout(left, read_timeout))
+            except httpx.TransportError as exc:
+                message = self.scrub(f"{type(exc).__name__}: {exc}")
+                if not idempotent and not isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout,
+                                                           httpx.PoolTimeout)):
+                    # The request may have reached Replicate and created a (paid) prediction: do not repeat it.
+                    raise PredictionError(f"{what}: {message}; the request may have reached Replicate, so it is "
+                                          "not repeated (check https://replicate.com/predictions before rerunning)") \
+                        from None
+                attempt = self._retry_or_fail(_Retry(None, None, message), attempt, what, deadline, stats)
+                continue
+            if response.status_code == 429 or response.status_code >= 500:
+                retry = _Retry(response.status_code, _retry_after(response), self._message(response))
+                attempt = self._retry_or_fail(retry, attempt, what, deadline, stats)
+                continue
+            if response.status_code >= 400:
+                raise ReplicateError(f"{what}: HTTP {response.status_code}: {self._message(response)}",
+                                     response.status_code)
+            return response
+
+    def _retry_or_fail(self, retry: "_Retry", attempt: int, what: str, deadline: Deadline, stats: CallStats) -> int:
+        """Count the failure, wait (Retry-After or backoff) and return the next attempt number, or raise."""
+        label = "network error" if retry.status is None else f"HTTP {retry.status}"
+        if attempt >= self.settings.max_retries:
+            raise ReplicateError(f"{what}: {label} after {attempt + 1} attempts: {retry.message}", retry.status)
+        if retry.status == 429:
+            stats.rate_limited += 1
+        elif retry.status is None:
+            stats.network_errors += 1
+        else:
+            stats.server_errors += 1
+        pause = retry.after if retry.status == 429 and retry.after is not None else self._backoff(attempt)
+        if pause > deadline.left():
+            raise ReplicateError(f"{what}: {label} ({retry.message}); waiting {pause:.3g} s more would pass the "
+                                 f"per-example timeout of {deadline.seconds:g} s", retry.status)
+        log.warning("%s: %s (%s); retrying in %.2f s (%d of %d)", what, label, retry.message, pause, attempt + 1,
+                    self.settings.max_retries)
+        self._sleep(pause)
+        return attempt + 1
+
+    def _backoff(self, attempt: int) -> float:
+        """Exponential backoff with jitter: uniform in [d/2, d], d = min(max, base 2^attempt)."""
+        d = min(self.settings.backoff_max_s, self.settings.backoff_base_s * 2.0 ** attempt)
+        with self._rng_lock:
+            return d * (0.5 + 0.5 * self._rng.random())
+
+    def _pause(self, seconds: float, deadline: Deadline, what: str) -> None:
+        left = deadline.check(what)
+        self._sleep(min(seconds, left))
+        deadline.check(what)
+
+    def _message(self, response: httpx.Response) -> str:
+        """The API's message from an error answer (problem JSON ``detail``/``title``, or the text), scrubbed."""
+        try:
+            if not response.is_stream_consumed:
+                response.read()
+            body = response.json()
+        except (ValueError, httpx.HTTPError):
+            body = None
+        if isinstance(body, dict):
+            text = body.get("detail") or body.get("error") or body.get("title") or json.dumps(body)[:300]
+        else:
+            try:
+                text = response.text[:300].strip()
+            except (httpx.HTTPError, ValueError):
+                text = ""
+        return self.scrub(str(text) or response.reason_phrase or "no message")
+
+    def _json(self, response: httpx.Response, what: str) -> Any:
+        try:
+            return response.json()
+        except ValueError:
+            raise ReplicateError(f"{what}: Replicate's answer is not JSON (HTTP {response.status_code})") from None
+
+    def _prediction(self, response: httpx.Response, what: str) -> dict[str, Any]:
+        body = self._json(response, what)
+        if not isinstance(body, dict) or not isinstance(body.get("id"), str) or not body["id"]:
+            raise ReplicateError(f"{what}: Replicate's answer is not a prediction (no id)")
+        return body
+
+
+class _Retry(Exception):
+    """A retriable failure: an HTTP status (None: a network error), its Retry-After and the message."""
+
+    def __init__(self, status: int | None, after: float | None, message: str):
+        super().__init__(message)
+        self.status, self.after, self.message = status, after, message
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    """Seconds from a ``Retry-After`` header (seconds or an HTTP date); None when absent or unreadable."""
+    value = response.headers.get("retry-after")
+    if not value:
+        return None
+    try:
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    try:
+        when = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - time.time())
+
+
+def _check_video(path: Path, what: str) -> None:
+    """A PredictionError unless ``path`` decodes as a video with at least one frame."""
+    try:
+        check_decodable(path)
+        if probe_video(path).n_frames == 0:
+            raise PredictionError(f"{what}: the output has no video frames; refused")
+    except VideoError as exc:
+        raise PredictionError(f"{what}: the output is not a decodable video ({exc.reason}); refused") from None

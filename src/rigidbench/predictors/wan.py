@@ -1,0 +1,332 @@
+"""``wan-2.2``: Wan 2.2 TI2V-5B run locally through diffusers (paper, section 4 and appendix B.1).
+
+``WanImageToVideoPipeline.from_pretrained("Wan-AI/Wan2.2-TI2V-5B-Diffusers", torch_dtype=bfloat16)``:
+the hub repository is stored as a ``WanPipeline``; loading it as the image-to-video class works and
+keeps its ``expand_timesteps`` (the TI2V model conditions on the first frame by pinning the first
+latent frame, with no image encoder). 1280x704, 49 frames written at 24 fps, 50 inference steps,
+bfloat16, the paper's negative prompt, the task prompt with the paper's suffix, the first reference
+frame as ``image``. The paper does not state the guidance scale; we use the model's published
+default, 5.0 (``sample_guide_scale`` of the TI2V-5B configuration), and record it.
+
+Besides the options of ``local.LocalVideoModel`` (``offload``, ``tiled_vae``, overrides):
+
+``checkpoint``: a fine-tuned model (the paper's section 5), one of
+
+- a LoRA adapter: a PEFT adapter directory (``adapter_config.json`` + ``adapter_model.safetensors``,
+  as ``PeftModel.save_pretrained`` writes it; its LoraConfig, alpha included, is used as saved), or
+  a LoRA safetensors file (or a directory holding one) in any format diffusers'
+  ``load_lora_weights`` reads for Wan (diffusers' ``transformer.``-prefixed keys, the original Wan /
+  DiffSynth ``diffusion_model.``-prefixed keys, musubi-tuner keys) or with unprefixed diffusers or
+  original Wan module names; its scale comes from the LoraConfig diffusers stores in the file's
+  header or from ``.alpha`` keys, else alpha = rank;
+- a full fine-tuned transformer: a ``WanTransformer3DModel.save_pretrained`` directory
+  (``config.json`` + safetensors), or a safetensors state dict of the whole transformer (diffusers
+  or original Wan key names; loaded strictly into the base model's architecture).
+
+Which one was found is decided from file names and safetensors headers alone, before the first
+example (an unusable path stops the run there), and recorded in generation.json with each file's
+sha256. Every adapter layer must land on a module of the transformer and a full state dict must
+match the architecture exactly; otherwise loading fails with the reason, and so does every example
+(the load is not retried).
+
+The pipeline calls ftfy (prompt cleaning) and, for LoRA checkpoints, peft; a missing one is named
+before the first example.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from ..errors import RigidBenchError, UserError
+from .base import PredictContext
+from .local import LocalVideoModel, dtype_kwarg
+
+log = logging.getLogger(__name__)
+
+ADAPTER_NAME = "checkpoint"
+LORA_MARKERS = (".lora_A.", ".lora_B.", ".lora_down.", ".lora_up.", "lora_A.weight", "lora_B.weight")
+PEFT_PREFIX = "base_model.model."
+ORIGINAL_PREFIX = "diffusion_model."
+#: module names of the original Wan code (DiffSynth too) that diffusers renames (attn1.to_q, ffn.net.0.proj, ...)
+ORIGINAL_NAMES = (".self_attn.", ".cross_attn.", ".ffn.0.", ".ffn.2.", "head.head", "text_embedding.0")
+HASH_LIMIT_BYTES = 2 * 2**30  # checkpoints up to this size are identified by their sha256, larger by size and mtime
+_FINGERPRINTS: dict[tuple, dict] = {}  # (path, size, mtime) -> fingerprint, so a run hashes each file once
+
+
+class CheckpointError(UserError):
+    """A ``checkpoint`` option that cannot be used; names the path and what was expected."""
+
+
+def _safetensors_keys(path: Path) -> list[str]:
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        return list(f.keys())
+
+
+def _is_lora(keys) -> bool:
+    return any(any(marker in k for marker in LORA_MARKERS) or k.endswith(".alpha") for k in keys)
+
+
+def detect_checkpoint(path: str | Path) -> dict[str, Any]:
+    """What the checkpoint at ``path`` is, from its files: {"kind": "lora-peft" | "lora" |
+    "transformer-dir" | "transformer-state-dict", "path", "weights" (the weight file or directory)}."""
+    path = Path(path).expanduser().resolve()
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    if path.is_dir():
+        if (path / "adapter_config.json").exists():
+            weights = path / "adapter_model.safetensors"
+            if not weights.exists():
+                raise CheckpointError(f"checkpoint {path}: a PEFT adapter directory needs adapter_model.safetensors")
+            try:
+                config = json.loads((path / "adapter_config.json").read_text())
+            except (OSError, ValueError) as exc:
+                raise CheckpointError(f"checkpoint {path}: unreadable adapter_config.json ({exc})") from None
+            return {"kind": "lora-peft", "path": str(path), "weights": str(weights),
+                    "lora": {k: config.get(k) for k in ("r", "lora_alpha", "target_modules", "lora_dropout")}}
+        config = path / "config.json"
+        if config.exists():
+            try:
+                class_name = json.loads(config.read_text()).get("_class_name")
+            except (OSError, ValueError) as exc:
+                raise CheckpointError(f"checkpoint {config}: unreadable config ({exc})") from None
+            if class_name != "WanTransformer3DModel":
+                raise CheckpointError(f"checkpoint {path}: config.json describes a {class_name}, expected a "
+                                      "WanTransformer3DModel (WanTransformer3DModel.save_pretrained) or a LoRA adapter")
+            return {"kind": "transformer-dir", "path": str(path), "weights": str(path)}
+        files = sorted(path.glob("*.safetensors"))
+        if len(files) != 1:
+            raise CheckpointError(f"checkpoint {path}: expected a PEFT adapter (adapter_config.json), a saved "
+                                  "WanTransformer3DModel (config.json) or exactly one .safetensors file; found "
+                                  f"{len(files)} .safetensors files")
+        path = files[0]
+    if path.suffix != ".safetensors":
+        raise CheckpointError(f"checkpoint {path}: only .safetensors files are read (no pickled .pt/.bin)")
+    keys = _safetensors_keys(path)
+    if not keys:
+        raise CheckpointError(f"checkpoint {path} holds no tensors")
+    kind = "lora" if _is_lora(keys) else "transformer-state-dict"
+    return {"kind": kind, "path": str(path), "weights": str(path)}
+
+
+def checkpoint_files(found: dict[str, Any]) -> list[Path]:
+    """The files that define a detected checkpoint's weights (not, e.g., a training run's optimizer state)."""
+    path = Path(found["path"])
+    if found["kind"] == "lora-peft":
+        return [path / "adapter_config.json", Path(found["weights"])]
+    if found["kind"] == "transformer-dir":
+        return sorted(p for p in path.iterdir() if p.is_file() and (p.suffix == ".safetensors" or p.suffix == ".json"))
+    return [Path(found["weights"])]
+
+
+def fingerprint(found: dict[str, Any]) -> dict[str, Any]:
+    """Identifies a checkpoint's weights: the sha256 of each file up to HASH_LIMIT_BYTES, else its size and mtime."""
+    out = {}
+    for f in checkpoint_files(found):
+        stat = f.stat()
+        key = (str(f), stat.st_size, stat.st_mtime_ns)
+        if key in _FINGERPRINTS:
+            out[f.name] = _FINGERPRINTS[key]
+            continue
+        if stat.st_size <= HASH_LIMIT_BYTES:
+            digest = hashlib.sha256()
+            with f.open("rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    digest.update(block)
+            out[f.name] = {"sha256": digest.hexdigest(), "bytes": stat.st_size}
+        else:
+            out[f.name] = {"bytes": stat.st_size, "mtime": int(stat.st_mtime)}
+        _FINGERPRINTS[key] = out[f.name]
+    return out
+
+
+def _lora_key_count(state_dict) -> int:
+    return sum(1 for k in state_dict if ".lora_A." in k or ".lora_down." in k)
+
+
+def _lora_module_count(transformer, adapter: str) -> int:
+    return sum(1 for m in transformer.modules() if adapter in getattr(m, "lora_A", {}))
+
+
+def _prefixed_lora(state_dict: dict) -> dict:
+    """Unprefixed LoRA keys (e.g. ``get_peft_model_state_dict(transformer)``, DiffSynth) get the prefix
+    diffusers' Wan loader dispatches on: ``diffusion_model.`` for original Wan names, ``transformer.``
+    for diffusers names."""
+    known = ("transformer.", ORIGINAL_PREFIX, "lora_unet_")
+    if any(k.startswith(known) for k in state_dict):
+        return state_dict
+    if any(k.startswith(PEFT_PREFIX) for k in state_dict):
+        state_dict = {k.removeprefix(PEFT_PREFIX): v for k, v in state_dict.items()}
+    original = any(any(name in f".{k}" for name in ORIGINAL_NAMES) for k in state_dict)
+    prefix = ORIGINAL_PREFIX if original else "transformer."
+    return {prefix + k: v for k, v in state_dict.items()}
+
+
+def _check_adapter(transformer, expected: int, path) -> int:
+    loaded = _lora_module_count(transformer, ADAPTER_NAME)
+    if expected == 0 or loaded != expected:
+        raise CheckpointError(f"checkpoint {path}: {expected} LoRA layers in the file but {loaded} loaded into the "
+                              "Wan transformer; is it an adapter of another model?")
+    return loaded
+
+
+def load_lora(pipe, found: dict) -> dict[str, Any]:
+    """Load a LoRA checkpoint into ``pipe.transformer`` as adapter "checkpoint"; returns facts for the record."""
+    try:
+        return _load_lora(pipe, found)
+    except (ValueError, KeyError, RuntimeError) as exc:  # peft / diffusers: no matching module, bad shapes
+        raise CheckpointError(f"checkpoint {found['path']} could not be loaded into the Wan transformer: "
+                              f"{str(exc).splitlines()[0][:500]}") from exc
+
+
+def _load_lora(pipe, found: dict) -> dict[str, Any]:
+    from safetensors.torch import load_file
+
+    path = found["path"]
+    if found["kind"] == "lora-peft":
+        from peft import LoraConfig
+
+        config = LoraConfig.from_pretrained(path)
+        state = {k.removeprefix(PEFT_PREFIX): v for k, v in load_file(found["weights"]).items()}
+        expected = _lora_key_count(state)
+        metadata = {k: v for k, v in config.to_dict().items() if k not in ("peft_type", "task_type")}
+        for key, value in metadata.items():
+            if isinstance(value, set):
+                metadata[key] = sorted(value)
+        pipe.transformer.load_lora_adapter(state, prefix=None, adapter_name=ADAPTER_NAME, metadata=metadata)
+        loaded = _check_adapter(pipe.transformer, expected, path)
+        targets = config.target_modules
+        return {"loader": "diffusers load_lora_adapter with the adapter's LoraConfig", "lora_layers": loaded,
+                "rank": config.r, "alpha": config.lora_alpha,
+                "target_modules": sorted(targets) if isinstance(targets, (set, list)) else targets}
+    state = _prefixed_lora(load_file(found["weights"]))
+    metadata = _lora_metadata(found["weights"])  # the LoraConfig diffusers' save_lora_weights may store (alpha)
+    converted = pipe.lora_state_dict(state)  # diffusers' Wan conversions (original, musubi) -> "transformer." keys
+    expected = _lora_key_count(converted)
+    pipe.load_lora_into_transformer(converted, transformer=pipe.transformer, adapter_name=ADAPTER_NAME,
+                                    metadata=metadata, _pipeline=pipe)
+    loaded = _check_adapter(pipe.transformer, expected, path)
+    return {"loader": "diffusers WanImageToVideoPipeline.lora_state_dict + load_lora_into_transformer",
+            "lora_layers": loaded, "config_from_file": metadata is not None}
+
+
+def _lora_metadata(path) -> dict | None:
+    """The LoRA adapter config that diffusers stores in a safetensors header ("lora_adapter_metadata"), if any."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        raw = (f.metadata() or {}).get("lora_adapter_metadata")
+    return json.loads(raw) if raw else None
+
+
+def load_full_transformer(pipe, found: dict):
+    """Put a fine-tuned ``WanTransformer3DModel`` into ``pipe``: a saved directory replaces the
+    transformer; a state dict is loaded strictly into the pipeline's transformer (same architecture,
+    same dtype; every key must match)."""
+    if found["kind"] == "transformer-dir":
+        from diffusers import WanTransformer3DModel
+
+        transformer = WanTransformer3DModel.from_pretrained(found["path"], **dtype_kwarg(pipe.transformer.dtype))
+        pipe.register_modules(transformer=transformer)
+        return "WanTransformer3DModel.from_pretrained"
+    from safetensors.torch import load_file
+
+    state = load_file(found["weights"])
+    for prefix in ("transformer.", "model.", ORIGINAL_PREFIX):
+        if all(k.startswith(prefix) for k in state):
+            state = {k.removeprefix(prefix): v for k, v in state.items()}
+    if any(any(name in f".{k}" for name in ORIGINAL_NAMES) for k in state):
+        from diffusers.loaders.single_file_utils import convert_wan_transformer_to_diffusers
+
+        state = convert_wan_transformer_to_diffusers(state)
+    try:
+        pipe.transformer.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        raise CheckpointError(f"checkpoint {found['path']} does not match the Wan transformer: "
+                              f"{str(exc).splitlines()[0]} {' '.join(str(exc).split()[1:40])}") from None
+    return "strict load_state_dict into the base architecture"
+
+
+class WanPredictor(LocalVideoModel):
+    model_id = "Wan-AI/Wan2.2-TI2V-5B-Diffusers"
+    default_revision = None
+    pipeline_class = "WanImageToVideoPipeline"
+    defaults = {"height": 704, "width": 1280, "num_frames": 49, "fps": 24.0, "steps": 50,
+                "guidance_scale": 5.0, "dtype": "bfloat16"}
+    guidance_note = ("not stated in the paper; Wan 2.2 TI2V-5B's published default (sample_guide_scale 5.0, "
+                     "also WanImageToVideoPipeline's default)")
+    size_multiple = 32  # the Wan 2.2 VAE's 16x spatial compression x the 2x2 patches
+
+    def __init__(self, info):
+        super().__init__(info)
+        self._checkpoint_record: dict[str, Any] | None = None
+
+    def checkpoint(self, ctx: PredictContext) -> dict[str, Any] | None:
+        path = ctx.option("checkpoint")
+        return None if path is None else detect_checkpoint(path)
+
+    def extra_settings(self, ctx: PredictContext) -> dict[str, Any]:
+        found = self.checkpoint(ctx)
+        if found is None:
+            return {"checkpoint": None}
+        return {"checkpoint": {"kind": found["kind"], "path": found["path"], "files": fingerprint(found)}}
+
+    def extra_info(self, ctx: PredictContext) -> dict[str, Any]:
+        found = self.checkpoint(ctx)
+        if found is None:
+            return {"checkpoint": None}
+        described = {"lora-peft": "LoRA adapter (PEFT directory)", "lora": "LoRA adapter (safetensors)",
+                     "transformer-dir": "full fine-tuned transformer (save_pretrained directory)",
+                     "transformer-state-dict": "full fine-tuned transformer (safetensors state dict)"}
+        record = {**found, "description": described[found["kind"]], "files": fingerprint(found)}
+        return {"checkpoint": record}
+
+    def predict(self, sample, ctx: PredictContext):
+        pred = super().predict(sample, ctx)
+        if self._checkpoint_record:
+            pred.metadata["checkpoint_loaded"] = dict(self._checkpoint_record)
+        return pred
+
+    def check_runnable(self, ctx: PredictContext) -> None:
+        """Before the first example: the checkpoint is usable, and the packages the pipeline calls are there
+        (diffusers' Wan pipeline cleans every prompt with ftfy, which it imports only when installed)."""
+        found = self.checkpoint(ctx)
+        missing = [pkg for pkg in ("ftfy",) + (("peft",) if found and found["kind"].startswith("lora") else ())
+                   if importlib.util.find_spec(pkg) is None]
+        if missing:
+            why = {"ftfy": "diffusers' Wan pipeline cleans every prompt with it", "peft": "to load a LoRA checkpoint"}
+            raise RigidBenchError(f"wan-2.2 needs {'; '.join(f'{pkg} ({why[pkg]})' for pkg in missing)}: "
+                                  f"pip install {' '.join(missing)}")
+
+    def load_pipeline(self, ctx: PredictContext, dtype):
+        from diffusers import WanImageToVideoPipeline
+
+        kwargs = {}
+        found = self.checkpoint(ctx)
+        if found is not None and found["kind"] == "transformer-dir":  # never load the base transformer
+            from diffusers import WanTransformer3DModel
+
+            kwargs["transformer"] = WanTransformer3DModel.from_pretrained(found["path"], **dtype_kwarg(dtype))
+            self._checkpoint_record = {"loader": "WanTransformer3DModel.from_pretrained"}
+        pipe = self.from_pretrained(WanImageToVideoPipeline, ctx, dtype, **kwargs)
+        if not pipe.config.get("expand_timesteps", False):
+            log.warning("%s: the loaded pipeline has expand_timesteps=False; Wan 2.2 TI2V-5B needs True", self.name)
+        return pipe
+
+    def configure(self, pipe, ctx: PredictContext, injected: bool):
+        """Load the checkpoint (an injected pipeline is changed in place)."""
+        found = self.checkpoint(ctx)
+        if found is None or (found["kind"] == "transformer-dir" and not injected):
+            return pipe
+        if found["kind"].startswith("lora"):
+            self._checkpoint_record = load_lora(pipe, found)
+        else:
+            self._checkpoint_record = {"loader": load_full_transformer(pipe, found)}
+        log.info("%s: loaded checkpoint %s (%s)", self.name, found["path"], found["kind"])
+        return pipe
