@@ -11,6 +11,7 @@ from pathlib import Path
 from .context import RunContext
 from .errors import RigidBenchError, UserError
 from .train.commands import add_commands as add_train_commands
+from .probe.commands import add_commands as add_probe_commands
 
 DEFAULT_DATA = Path("data")
 CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
@@ -426,6 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-report", action="store_true", help="skip the report (tables, figures, report.html)")
     p.set_defaults(func=cmd_demo)
     add_train_commands(sub)  # preprocess, train (fine-tuning Wan 2.2)
+    add_probe_commands(sub)  # probe extract|fit|intervene|report (paper sections 5.2-5.3)
     return parser
 
 

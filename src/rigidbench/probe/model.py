@@ -1,0 +1,175 @@
+"""The DiT side of probing: the three backbones, the teacher-forced noised input at a schedule fraction,
+block hooks, and Wan's final time-conditioned head applied to any block's output (the direct readout).
+
+Schedule fractions: tau is a position along the 1,000-step training schedule of ``train.schedules``
+(s_i = 1 - i/N): index i = round((1 - tau) N), so s = tau before the shift-5 warp, and
+sigma = 5 tau / (1 + 4 tau) (0.357, 0.682, 0.833, 0.921, 0.978 for tau = 0.1 .. 0.9); the
+transformer sees timestep N sigma on every token but those of slot 0, which stay clean at timestep 0
+(``train.objective.FlowMatchingObjective.prepare``, as in training). The noise of a clip is drawn from
+a CPU generator seeded with a hash of (seed 0, clip id), the same for every tau, block and backbone.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from contextlib import contextmanager
+from types import SimpleNamespace
+
+import torch
+
+from ..errors import UserError
+from ..predictors.wan import detect_checkpoint, load_full_transformer, load_lora
+from ..train.objective import FlowMatchingObjective
+
+DEFAULT_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)
+NUM_TRAIN_TIMESTEPS = 1000
+SHIFT = 5.0
+RANDOM_SEED = 1234  # the tiny "random" backbone (the tiny "base" is seed 0)
+
+
+def tau_index(tau: float, n: int = NUM_TRAIN_TIMESTEPS) -> int:
+    if not 0.0 < tau <= 1.0:
+        raise UserError(f"schedule fractions must lie in (0, 1], got {tau}")
+    return min(n - 1, max(0, int(round((1.0 - tau) * n))))
+
+
+def schedule_points(taus, objective: FlowMatchingObjective | None = None) -> list[dict]:
+    """[{"tau", "index", "sigma", "timestep"}] for the schedule fractions ``taus``."""
+    obj = objective or FlowMatchingObjective(NUM_TRAIN_TIMESTEPS, SHIFT)
+    return [{"tau": float(t), "index": tau_index(t, obj.num_train_timesteps),
+             "sigma": float(obj.sigmas[tau_index(t, obj.num_train_timesteps)]),
+             "timestep": float(obj.timesteps[tau_index(t, obj.num_train_timesteps)])} for t in taus]
+
+
+def clip_noise(clip_id: str, shape, seed: int = 0) -> torch.Tensor:
+    """Gaussian noise (float32, CPU) of ``shape`` for one clip: a function of (seed, clip id) only."""
+    digest = hashlib.sha256(f"{int(seed)}/{clip_id}".encode()).digest()
+    gen = torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
+    return torch.randn(tuple(shape), generator=gen, dtype=torch.float32)
+
+
+def load_backbone(backbone: str, model: str, model_path: str | None, device, dtype=torch.float32):
+    """``base``: the pretrained DiT (the tiny builder's seed-0 weights for ``tiny``); ``random``: the same
+    architecture re-initialised (tiny: seed RANDOM_SEED; wan-2.2: the class's default init), VAE and
+    token layout unchanged; anything else: a checkpoint of ``rigidbench train`` (a full transformer
+    directory, or a LoRA adapter applied to the base model)."""
+    from ..train import models, tiny
+
+    if backbone == "base":
+        return models.load_transformer(model, model_path, "pretrained", dtype, device).eval()
+    if backbone == "random":
+        if model == "tiny" and not model_path:
+            return models._to(tiny.tiny_transformer(seed=RANDOM_SEED), device, dtype).eval()
+        return models.load_transformer(model, model_path, "random", dtype, device).eval()
+    found = detect_checkpoint(backbone)
+    base = models.load_transformer(model, model_path, "pretrained", dtype, device)
+    holder = SimpleNamespace(transformer=base, register_modules=lambda **kw: setattr(holder, "transformer",
+                                                                                       kw["transformer"]))
+    if found["kind"].startswith("lora"):
+        load_lora(holder, found)
+    else:
+        load_full_transformer(holder, found)
+    return holder.transformer.to(device).eval()
+
+
+def noised_batch(latent: torch.Tensor, clip_id: str, tau: float, objective: FlowMatchingObjective | None = None,
+                 seed: int = 0):
+    """latent (C, F, h, w) -> the objective's NoisedBatch (B = 1) at schedule fraction ``tau``."""
+    obj = objective or FlowMatchingObjective(NUM_TRAIN_TIMESTEPS, SHIFT)
+    z = latent.float().unsqueeze(0)
+    return obj.prepare(z, clip_noise(clip_id, z.shape, seed), tau_index(tau, obj.num_train_timesteps))
+
+
+@contextmanager
+def capture_blocks(transformer, store: dict):
+    """Record every block's output into ``store[block index]`` (B, L, D) while the context is open;
+    also the head's inputs: ``store["temb"]`` (the condition embedder's time embedding)."""
+    handles = []
+    for i, block in enumerate(transformer.blocks):
+        handles.append(block.register_forward_hook(lambda m, a, out, i=i: store.__setitem__(i, out.detach())))
+    handles.append(transformer.condition_embedder.register_forward_hook(
+        lambda m, a, out: store.__setitem__("temb", out[0].detach())))
+    try:
+        yield store
+    finally:
+        for h in handles:
+            h.remove()
+
+
+@contextmanager
+def capture_block_inputs(transformer, store: dict):
+    """Record the arguments block 0 is called with (``store["block_args"]``: (args, kwargs)); every block
+    of ``WanTransformer3DModel.forward`` gets the same text states, time projection and rotary
+    embedding, so ``resume_from`` can run the remaining blocks from any block's output."""
+    def pre(module, args, kwargs):
+        store["block_args"] = (tuple(a.detach() if torch.is_tensor(a) else a for a in args), dict(kwargs))
+
+    handle = transformer.blocks[0].register_forward_pre_hook(pre, with_kwargs=True)
+    try:
+        yield store
+    finally:
+        handle.remove()
+
+
+def resume_from(transformer, block: int, hidden: torch.Tensor, block_args, temb: torch.Tensor,
+                latent_shape) -> torch.Tensor:
+    """The model's output when block ``block`` outputs ``hidden``: blocks ``block``+1.. with the recorded
+    arguments, then the head (the same computation as a forward hook on that block; tested)."""
+    args, kwargs = block_args
+    h = hidden
+    for blk in transformer.blocks[block + 1:]:
+        h = blk(h, *args[1:], **kwargs)
+    return direct_head(transformer, h, temb, latent_shape)
+
+
+@contextmanager
+def intervene_block(transformer, block: int, basis: torch.Tensor, alpha: float):
+    """A forward hook replacing block ``block``'s output h by h - alpha (h B) B^T on every token."""
+    def hook(module, args, out):
+        b = basis.to(device=out.device, dtype=torch.float32)
+        h = out.float()
+        return (h - alpha * (h @ b) @ b.T).to(out.dtype)
+
+    handle = transformer.blocks[block].register_forward_hook(hook)
+    try:
+        yield
+    finally:
+        handle.remove()
+
+
+def direct_head(transformer, hidden: torch.Tensor, temb: torch.Tensor, latent_shape) -> torch.Tensor:
+    """Wan's output stage (time-conditioned norm, projection, unpatchify) applied to a residual state
+    ``hidden`` (B, L, D), as ``WanTransformer3DModel.forward`` applies it after the last block;
+    returns (B, C, F, H, W)."""
+    b, _, f, h, w = latent_shape
+    p_t, p_h, p_w = transformer.config.patch_size
+    if temb.ndim == 3:
+        shift, scale = (transformer.scale_shift_table.unsqueeze(0).to(temb.device) + temb.unsqueeze(2)).chunk(2, dim=2)
+        shift, scale = shift.squeeze(2), scale.squeeze(2)
+    else:
+        shift, scale = (transformer.scale_shift_table.to(temb.device) + temb.unsqueeze(1)).chunk(2, dim=1)
+    shift, scale = shift.to(hidden.device), scale.to(hidden.device)
+    x = (transformer.norm_out(hidden.float()) * (1 + scale) + shift).type_as(hidden)
+    x = transformer.proj_out(x)
+    x = x.reshape(b, f // p_t, h // p_h, w // p_w, p_t, p_h, p_w, -1).permute(0, 7, 1, 4, 2, 5, 3, 6)
+    return x.flatten(6, 7).flatten(4, 5).flatten(2, 3)
+
+
+def flow_loss(prediction: torch.Tensor, batch) -> float:
+    """Unweighted float32 MSE against the velocity target over temporal slots 1.. (slot 0 excluded)."""
+    return float(torch.nn.functional.mse_loss(prediction[:, :, 1:].float(), batch.target[:, :, 1:].to(
+        prediction.device)))
+
+
+def forward(transformer, batch, text: torch.Tensor, device, dtype=torch.float32) -> torch.Tensor:
+    return transformer(hidden_states=batch.noisy.to(device=device, dtype=dtype),
+                       timestep=batch.timestep_tokens.to(device), encoder_hidden_states=text.to(device=device,
+                                                                                                dtype=dtype),
+                       return_dict=False)[0]
+
+
+def token_grid(latent_shape, patch_size) -> tuple[int, int, int]:
+    """(slots, rows, columns) of the token grid of a (C, F, h, w) latent."""
+    _, f, h, w = latent_shape
+    pt, ph, pw = patch_size
+    return f // pt, h // ph, w // pw

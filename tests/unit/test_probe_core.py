@@ -1,0 +1,151 @@
+"""Probe core on synthetic data: the probes and their shuffled control, INLP and its controls, the
+variance-matched alpha, the slot mapping, mask pooling and the targets (paper appendix E)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from rigidbench.probe.fit import ProbeSettings, fit_cell, r2_score, roc_auc  # noqa: E402
+from rigidbench.probe.inlp import (inlp, project_out, random_orthonormal, ridge_fit,  # noqa: E402
+                                   total_variance, variance_matched_alpha, variance_matched_pcs)
+from rigidbench.probe.pooling import (max_pool_to_grid, n_slots, pool_actors, pooling_matrix,  # noqa: E402
+                                      slot_frames, slot_token_masks)
+from rigidbench.probe.targets import slot_targets  # noqa: E402
+
+# the paper's optimiser, with smaller batches so that the few thousand synthetic rows get enough steps
+FAST = ProbeSettings(epochs=20, batch_size=128, lr=1e-3, seed=0)
+
+
+def planted(n=4000, d=32, k=3, noise=0.05, seed=1):
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((n, d)) * rng.uniform(0.1, 10.0, d)  # very different scales per feature
+    w = rng.standard_normal((d, k)) / np.sqrt(d)
+    y = (x / x.std(axis=0)) @ w
+    return x.astype(np.float32), (y + noise * y.std() * rng.standard_normal(y.shape)).astype(np.float32)
+
+
+def splits(x, y):
+    n = len(x)
+    a, b = int(0.8 * n), int(0.9 * n)
+    return (x[:a], y[:a]), (x[a:b], y[a:b]), (x[b:], y[b:])
+
+
+def test_linear_probe_recovers_a_planted_signal_and_the_shuffled_control_does_not():
+    x, y = planted()
+    tr, va, te = splits(x, y)
+    trained = fit_cell(tr, va, te, "linear", False, "trained", FAST)
+    control = fit_cell(tr, va, te, "linear", False, "shuffled", FAST)
+    assert trained["metric"] == "r2" and trained["test"] > 0.9
+    assert control["test"] < 0.05
+    mlp = fit_cell(tr, va, te, "mlp", False, "trained", FAST)
+    assert mlp["test"] > 0.8
+
+
+def test_probe_recovers_a_planted_binary_target_by_roc_auc():
+    x, y = planted(k=1)
+    label = (y[:, :1] > 0).astype(np.float32)
+    tr, va, te = splits(x, label)
+    trained = fit_cell(tr, va, te, "linear", True, "trained", FAST)
+    control = fit_cell(tr, va, te, "linear", True, "shuffled", FAST)
+    assert trained["metric"] == "roc_auc" and trained["test"] > 0.95
+    assert abs(control["test"] - 0.5) < 0.1
+
+
+def test_scores_edge_cases():
+    assert np.isnan(roc_auc(np.ones(5), np.arange(5)))
+    assert r2_score(np.arange(5.0), np.arange(5.0)) == pytest.approx(1.0)
+    assert r2_score(np.arange(5.0), np.full(5, 2.0)) == pytest.approx(0.0)
+
+
+def test_inlp_removes_a_planted_low_rank_subspace():
+    rng = np.random.default_rng(0)
+    n, d = 3000, 40
+    x = rng.standard_normal((n, d))
+    m = rng.standard_normal((3, 2))
+    y = x[:, :3] @ m  # a 2-d target read from a planted 2-d subspace (columns of m in the first 3 axes)
+    res = inlp(x, y)
+    b = res.basis
+    assert res.stopped == "r2"
+    assert b.shape[0] == d and res.rank == 2 * (len(res.train_r2) - 1)
+    assert np.allclose(b.T @ b, np.eye(res.rank), atol=1e-8)
+    xr = project_out(x, b)
+    w, c = ridge_fit(xr[:2400], y[:2400], 0.05)
+    assert r2_score(y[2400:], xr[2400:] @ w + c) < 0.05
+    assert r2_score(y[:2400], xr[:2400] @ w + c) < 0.05
+    # the planted directions lie in the removed subspace
+    planted_dirs = np.eye(d)[:, :3] @ m
+    assert np.linalg.norm(project_out(planted_dirs.T, b)) < 1e-3 * np.linalg.norm(planted_dirs)
+    rnd = random_orthonormal(d, res.rank, seed=0)
+    assert rnd.shape == b.shape and np.allclose(rnd.T @ rnd, np.eye(res.rank), atol=1e-10)
+
+
+def test_variance_matched_alpha_removes_exactly_the_target_variance():
+    rng = np.random.default_rng(3)
+    d = 12
+    a = rng.standard_normal((d, d)) * rng.uniform(0.1, 3.0, d)
+    x = rng.standard_normal((500, d)) @ a
+    basis = random_orthonormal(d, 3, seed=5)
+    pc = variance_matched_pcs(x, basis)
+    removed = total_variance(x) - total_variance(project_out(x, pc.basis, pc.alpha))
+    assert removed == pytest.approx(pc.target_variance, abs=1e-6, rel=0)
+    assert pc.top_variance >= pc.target_variance
+    assert removed == pytest.approx(total_variance(x) - total_variance(project_out(x, basis)), abs=1e-6, rel=0)
+    lam = np.sort(np.linalg.eigvalsh(np.cov(x.T)))[::-1]
+    assert pc.k == 1 or lam[:pc.k - 1].sum() < pc.target_variance
+    alpha, k, top = variance_matched_alpha(lam[0] * 0.75, lam)
+    assert k == 1 and alpha * (2 - alpha) * top == pytest.approx(lam[0] * 0.75, abs=1e-9)
+
+
+def test_slot_mapping_of_the_4n_plus_1_vae():
+    assert slot_frames(0) == [0]
+    assert slot_frames(1) == [1, 2, 3, 4]
+    assert slot_frames(12) == [45, 46, 47, 48]
+    assert n_slots(49) == 13 and n_slots(9) == 3
+
+
+def test_mask_pooling_on_a_hand_built_clip():
+    # 9 frames (3 slots) of 8x16 pixels, token grid 2x4 (4x4-pixel cells); two actors
+    masks = np.zeros((9, 2, 8, 16), dtype=bool)
+    masks[0, 0, 0, 0] = True               # actor 0 in frame 0: one pixel of token (0, 0)
+    masks[2, 0, 5, 5] = True               # actor 0 in frame 2 -> slot 1, token (1, 1)
+    masks[4, 0, 0, 15] = True              # ... frame 4 -> slot 1, token (0, 3)
+    masks[5:9, 1, 4:8, 8:16] = True        # actor 1 in slot 2: tokens (1, 2) and (1, 3)
+    tm = slot_token_masks(masks, 3, (2, 4))
+    assert tm.shape == (3, 2, 2, 4)
+    assert tm[0, 0].sum() == 1 and tm[0, 0, 0, 0]
+    assert tm[1, 0].sum() == 2 and tm[1, 0, 1, 1] and tm[1, 0, 0, 3]
+    assert tm[2, 1].sum() == 2 and tm[2, 1, 1, 2] and tm[2, 1, 1, 3]
+    assert not tm[0, 1].any() and not tm[2, 0].any() and not tm[1, 1].any()
+    w, index = pooling_matrix(tm)
+    assert index.tolist() == [[0, 0], [1, 0], [2, 1]]  # uncovered (slot, actor) pairs have no row
+    tokens = np.arange(24 * 2, dtype=np.float32).reshape(24, 2)  # token t = slot*8 + row*4 + col
+    rows, _ = pool_actors(tokens, tm)
+    assert np.allclose(rows[0], tokens[0])
+    assert np.allclose(rows[1], (tokens[8 + 5] + tokens[8 + 3]) / 2)
+    assert np.allclose(rows[2], (tokens[16 + 6] + tokens[16 + 7]) / 2)
+    trows, _ = pool_actors(torch.as_tensor(tokens), tm)
+    assert np.allclose(trows.numpy(), rows)
+    # a non-integer cell size (a 144x256 render onto a 2x4 grid) covers the boundary rows in both cells
+    m = np.zeros((3, 5), dtype=bool)
+    m[1, 0] = True
+    assert max_pool_to_grid(m, (2, 2))[:, 0].tolist() == [True, True]
+
+
+def test_slot_targets_on_a_hand_built_trajectory():
+    t = 9
+    pos = np.zeros((2, t, 3))
+    pos[0, :, 0] = np.arange(t)               # actor 0 moves 1 m per frame along x
+    quat = np.tile([1.0, 0, 0, 0], (2, t, 1))
+    quat[1] *= -1                              # sign-flipped quaternion is the same orientation
+    vel = np.gradient(pos, 1 / 10, axis=1)
+    contacts = [SimpleNamespace(frame=3, a="b", b="a", normals=((1.0, 0, 0),))]
+    out = slot_targets(pos, quat, vel, np.zeros_like(vel), 10.0, contacts, ("a", "b"), 3, 9)
+    assert out["position"][1, 0, 0] == pytest.approx(2.5) and out["position"][2, 0, 0] == pytest.approx(6.5)
+    assert np.allclose(out["orientation"][:, 1], [1, 0, 0, 0])
+    assert out["linear_velocity"][1, 0, 0] == pytest.approx(10.0)
+    assert np.allclose(out["acceleration"], 0.0)
+    assert out["contact"][:, :, 0].tolist() == [[0, 0], [1, 1], [0, 0]]
+    assert np.allclose(out["contact_normal"][1, 1], [1, 0, 0]) and np.allclose(out["contact_normal"][1, 0], [-1, 0, 0])

@@ -1,0 +1,116 @@
+"""The DiT side of probing on the tiny Wan transformer: the direct-head readout equals the model's
+output at the last block (with and without a subspace removed), and the schedule fractions."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("diffusers")
+
+from rigidbench.probe import model as wan  # noqa: E402
+from rigidbench.train.objective import FlowMatchingObjective  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def tiny_setup():
+    from rigidbench.train.tiny import tiny_transformer
+
+    transformer = tiny_transformer()
+    latent = torch.randn(48, 3, 4, 8, generator=torch.Generator().manual_seed(0))
+    text = torch.randn(1, 16, 32, generator=torch.Generator().manual_seed(1))
+    return transformer, latent, text
+
+
+def test_schedule_points():
+    pts = wan.schedule_points(wan.DEFAULT_TAUS)
+    assert [p["index"] for p in pts] == [900, 700, 500, 300, 100]
+    assert pts[2]["sigma"] == pytest.approx(5 * 0.5 / (1 + 4 * 0.5))
+    assert pts[2]["timestep"] == pytest.approx(1000 * pts[2]["sigma"])
+
+
+def test_noised_batch_keeps_slot_zero_clean_and_noise_is_per_clip(tiny_setup):
+    _, latent, _ = tiny_setup
+    batch = wan.noised_batch(latent, "00001", 0.5)
+    assert torch.equal(batch.noisy[0, :, 0], latent[:, 0])
+    tokens = batch.timestep_tokens.reshape(3, 8)
+    assert (tokens[0] == 0).all() and torch.allclose(tokens[1:], torch.full_like(tokens[1:], batch.timestep))
+    assert torch.equal(wan.clip_noise("a", (2, 3)), wan.clip_noise("a", (2, 3)))
+    assert not torch.equal(wan.clip_noise("a", (2, 3)), wan.clip_noise("b", (2, 3)))
+
+
+def test_direct_head_and_full_model_coincide_at_the_last_block(tiny_setup):
+    transformer, latent, text = tiny_setup
+    obj = FlowMatchingObjective()
+    batch = wan.noised_batch(latent, "00001", 0.5, obj)
+    store = {}
+    with torch.no_grad(), wan.capture_blocks(transformer, store):
+        out = wan.forward(transformer, batch, text, "cpu")
+    last = len(transformer.blocks) - 1
+    assert set(store) == {0, last, "temb"} and store[0].shape == (1, 24, 24)
+    with torch.no_grad():
+        head = wan.direct_head(transformer, store[last], store["temb"], batch.noisy.shape)
+    assert torch.allclose(head, out, atol=1e-6)
+    basis = torch.as_tensor(np.linalg.qr(np.random.default_rng(0).standard_normal((24, 5)))[0], dtype=torch.float32)
+    with torch.no_grad():
+        with wan.intervene_block(transformer, last, basis, 1.0):
+            full = wan.forward(transformer, batch, text, "cpu")
+        h = store[last]
+        direct = wan.direct_head(transformer, h - (h @ basis) @ basis.T, store["temb"], batch.noisy.shape)
+    assert torch.allclose(full, direct, atol=1e-6)
+    assert wan.flow_loss(full, batch) != pytest.approx(wan.flow_loss(out, batch))
+    # the hook is removed afterwards
+    with torch.no_grad():
+        assert torch.allclose(wan.forward(transformer, batch, text, "cpu"), out)
+
+
+def test_random_backbone_differs_from_base():
+    base = wan.load_backbone("base", "tiny", None, "cpu")
+    rand = wan.load_backbone("random", "tiny", None, "cpu")
+    assert type(base) is type(rand)
+    assert not torch.equal(base.blocks[0].ffn.net[0].proj.weight, rand.blocks[0].ffn.net[0].proj.weight)
+
+
+def test_checkpoint_backbone_loads_a_saved_transformer_directory(tmp_path):
+    from rigidbench.train.tiny import tiny_transformer
+
+    saved = tiny_transformer(seed=7)
+    saved.save_pretrained(tmp_path / "step-1")
+    loaded = wan.load_backbone(str(tmp_path / "step-1"), "tiny", None, "cpu")
+    assert torch.equal(loaded.proj_out.weight, saved.proj_out.weight)
+
+
+def test_store_splits_follow_the_paper_proportions():
+    from rigidbench.probe.store import assign_splits
+
+    big = assign_splits([f"{i:05d}" for i in range(5000)])
+    assert sorted(list(big.values()).count(s) for s in ("train", "val", "test")) == [500, 500, 4000]
+    assert sorted(assign_splits(["a", "b", "c", "d"]).values()) == ["test", "train", "train", "val"]
+    assert list(assign_splits(["a", "b"]).values()) == ["train", "train"]
+
+
+def test_user_errors_exit_with_status_2(tmp_path, capsys):
+    from rigidbench.cli import main
+
+    assert main(["probe", "fit", "--acts", str(tmp_path), "--out", str(tmp_path / "p")]) == 2
+    assert "not an activation store" in capsys.readouterr().err
+    assert main(["probe", "report", "--out", str(tmp_path / "r")]) == 2
+
+
+def test_resuming_from_a_block_equals_a_forward_hook_at_every_block(tiny_setup):
+    transformer, latent, text = tiny_setup
+    batch = wan.noised_batch(latent, "00002", 0.3)
+    store = {}
+    with torch.no_grad(), wan.capture_blocks(transformer, store), wan.capture_block_inputs(transformer, store):
+        out = wan.forward(transformer, batch, text, "cpu")
+    basis = torch.as_tensor(np.linalg.qr(np.random.default_rng(1).standard_normal((24, 4)))[0], dtype=torch.float32)
+    for block in range(len(transformer.blocks)):
+        with torch.no_grad():
+            h = store[block]
+            assert torch.allclose(wan.resume_from(transformer, block, h, store["block_args"], store["temb"],
+                                                  batch.noisy.shape), out, atol=1e-6)
+            with wan.intervene_block(transformer, block, basis, 0.7):
+                hooked = wan.forward(transformer, batch, text, "cpu")
+            resumed = wan.resume_from(transformer, block, h - 0.7 * (h @ basis) @ basis.T, store["block_args"],
+                                      store["temb"], batch.noisy.shape)
+        assert torch.allclose(hooked, resumed, atol=1e-6)
+        assert not torch.allclose(hooked, out, atol=1e-4)
