@@ -400,6 +400,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-clips", action="store_true", help="no looping video clips beside the filmstrips")
     p.add_argument("--outlines", choices=("reference", "perceived"), default="reference",
                    help="object outlines drawn on the filmstrips: the reference masks, or each run's perceived masks")
+    p.add_argument("--probe-report", type=Path, metavar="PATH",
+                   help="a probe report (the report.html `rigidbench probe report` wrote, or its directory) to link")
     p.set_defaults(func=_lazy("rigidbench.report:cmd_report"))
     p = sub.add_parser("validate-metrics", help="controlled metric perturbations and one failure-mode response "
                        "curve per metric (figure + table)")

@@ -9,6 +9,8 @@ Writes into the output directory::
     tables/<name>.csv               model_metrics, by_task, by_partition, paired_changes, poi_matrix,
                                     correlation (long form, unrounded, unscaled)
     figures/<name>.png, .pdf        ssim_vs_ate3d, ate3d_by_task, metric_intervals, poi_heatmaps
+    with fine-tuned checkpoint runs (see report/checkpoints.py): tables/checkpoint_sweep.md/.tex/.csv,
+                                    tables/checkpoint_paired.md/.tex, figures/metric_vs_step.png/.pdf
     examples/<id>/<row>.jpg, .mp4   filmstrips of a few examples: the reference and each prediction with
                                     mask outlines, and looping clips (where the reference bundles and
                                     predictions that run.json records are on this machine)
@@ -19,11 +21,13 @@ matplotlib is imported only when figures are drawn.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import analyse
+from rigidbench.report.checkpoints import checkpoint_figure, checkpoint_tables, find_checkpoints, write_checkpoint_csv
 from rigidbench.report.examples import build_filmstrips
 from rigidbench.report.figures import build_figures
 from rigidbench.report.html import render_page
@@ -38,7 +42,8 @@ __all__ = ["ReportError", "ReportNotes", "ScoreTable", "build_report", "cmd_repo
 _CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "by_task": ("by_task.csv",),
                   "all_by_task": ("by_task.csv",), "by_partition": ("by_partition.csv",),
                   "all_by_partition": ("by_partition.csv",), "paired_changes": ("paired_changes.csv",),
-                  "poi_ate3d": ("poi_matrix.csv",), "poi_ssim": ("poi_matrix.csv",)}
+                  "poi_ate3d": ("poi_matrix.csv",), "poi_ssim": ("poi_matrix.csv",),
+                  "checkpoint_sweep": ("checkpoint_sweep.csv",), "checkpoint_paired": ("checkpoint_sweep.csv",)}
 
 
 @dataclass(frozen=True)
@@ -116,13 +121,27 @@ def report_notes(data) -> ReportNotes:
     return ReportNotes(status, official, extra, tuple(general), summary, tuple(skipped))
 
 
+def probe_link(probe_report, out_dir: Path) -> tuple[str, str] | None:
+    """(href relative to out_dir, note) for a probe report: its report.html, or the file given; None if none."""
+    if probe_report is None:
+        return None
+    path = Path(probe_report)
+    if path.is_dir() or not path.suffix:
+        path = path / "report.html"
+    href = Path(os.path.relpath(path.resolve(), out_dir.resolve())).as_posix()
+    return href, "" if path.is_file() else f" (not found at {path} when this report was written)"
+
+
 def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, baseline: str | None = None,
-                 examples: int = 3, clips: bool = True, outlines: str = "reference") -> Path:
+                 examples: int = 3, clips: bool = True, outlines: str = "reference",
+                 probe_report: Path | None = None) -> Path:
     """Read run directories, write tables, figures, example filmstrips and report.html into out_dir.
 
     examples: how many examples get filmstrips (0: none); clips: also write their looping videos; outlines:
     what the prediction rows outline, "reference" (where the objects should be) or "perceived" (the run's
-    perception cache). Returns the report.html path."""
+    perception cache). Runs of fine-tuned checkpoints add a checkpoint section (report/checkpoints.py);
+    probe_report: the HTML `rigidbench probe report` wrote (or its directory), linked from the header.
+    Returns the report.html path."""
     out_dir = Path(out_dir)
     table = load_runs(run_dirs)
     log.info("loaded %d runs over %d shared examples", len(table.models), len(table.example_ids))
@@ -131,14 +150,30 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     tables_dir.mkdir(parents=True, exist_ok=True)
     figures_dir.mkdir(parents=True, exist_ok=True)
     tables = build_tables(data)
+    sweep = find_checkpoints(data)
+    if sweep is not None:
+        tables += checkpoint_tables(data, sweep)
     table_files = write_tables(tables, tables_dir)
     csv_paths = {p.name: p for p in write_csvs(data, tables_dir)}
+    if sweep is not None:
+        path = write_checkpoint_csv(data, sweep, tables_dir)
+        csv_paths[path.name] = path
     for key, files in table_files.items():
         files["csv"] = [csv_paths[name] for name in _CSV_FOR_TABLE.get(key, ()) if name in csv_paths]
     figures = build_figures(data, figures_dir)
+    if sweep is not None:
+        curve = checkpoint_figure(data, sweep, figures_dir)
+        if curve is not None:
+            figures.append(curve)
+    probe = probe_link(probe_report, out_dir)
     strips = build_filmstrips(data, out_dir / "examples", n_examples=examples, clips=clips, outlines=outlines)
     notes = report_notes(data)
-    markdown = ["# RigidBench report", ""] + [f"- {n}" for n in notes.lines()] + [""]
+    markdown = ["# RigidBench report", ""] + [f"- {n}" for n in notes.lines()]
+    if probe is not None:
+        markdown.append(f"- Probe report: [{probe[0]}]({probe[0]}){probe[1]}")
+    if sweep is not None:
+        markdown += [f"- Fine-tuned checkpoints: {n}" for n in sweep.notes]
+    markdown.append("")
     for tb in tables:
         markdown.append(to_markdown(tb))
     for fig in figures:
@@ -153,16 +188,19 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
         markdown.append("")
     (out_dir / "report.md").write_text("\n".join(markdown))
     page = out_dir / "report.html"
-    page.write_text(render_page(data, notes, tables, table_files, figures, out_dir, strips))
+    page.write_text(render_page(data, notes, tables, table_files, figures, out_dir, strips,
+                                checkpoints=sweep, probe=probe))
     log.info("wrote %s", page)
     return page
 
 
 def cmd_report(args, ctx=None) -> int:
     """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed; optional
-    args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived")."""
+    args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived"),
+    args.probe_report (a probe report to link)."""
     page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline,
                         examples=getattr(args, "examples", 3), clips=not getattr(args, "no_clips", False),
-                        outlines=getattr(args, "outlines", "reference"))
+                        outlines=getattr(args, "outlines", "reference"),
+                        probe_report=getattr(args, "probe_report", None))
     print(f"report for {len(args.runs)} run(s): {page}")
     return 0

@@ -3,7 +3,9 @@
 The header is short: what was compared, whether it is official (the shared reason said once), and
 the measurements that were not computed folded into one collapsible note. Then the model table,
 the example filmstrips, the task and partition breakdowns (every measurement in a collapsible
-table), the paired comparisons and probability-of-improvement matrices, and the runs.
+table), the paired comparisons and probability-of-improvement matrices, the fine-tuned checkpoints
+(metric-versus-step curves and paired changes against base Wan, only when some runs are checkpoints),
+and the runs. A probe report given to `build_report` is linked in the header.
 
 Images, clips and downloads are referenced by paths relative to the report directory, so the
 directory can be moved or zipped as a whole; every referenced file is written before the page.
@@ -74,7 +76,8 @@ details.clips summary { cursor: pointer; font-size: 13px; color: #0b57d0; margin
 # (anchor, heading) of each section, in page order; a section without content is left out.
 SECTIONS = (("models", "Model comparison"), ("examples", "Examples"), ("by-task", "By task"),
             ("by-partition", "By evaluation partition"), ("paired", "Paired comparisons"),
-            ("uncertainty", "Uncertainty across all measurements"), ("runs", "Runs"))
+            ("checkpoints", "Fine-tuned checkpoints"), ("uncertainty", "Uncertainty across all measurements"),
+            ("runs", "Runs"))
 
 
 def _e(text) -> str:
@@ -111,8 +114,9 @@ def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> s
     return "\n".join(rows)
 
 
-def header(data: ReportData, notes) -> list[str]:
-    """Title, one line of what was compared, the official status once, and the notes (skip reasons folded)."""
+def header(data: ReportData, notes, probe: tuple[str, str] | None = None) -> list[str]:
+    """Title, one line of what was compared, the official status once, and the notes (skip reasons folded);
+    probe: (href, note) of a probe report to link."""
     t = data.table
     backends = sorted({run.perception for run in t.runs})
     meta = [f"{len(t.models)} run{'s' if len(t.models) != 1 else ''}",
@@ -124,6 +128,8 @@ def header(data: ReportData, notes) -> list[str]:
     parts = ["<h1>RigidBench report</h1>",
              '<p class="meta">' + " · ".join(m if m.startswith("paired") else _e(m) for m in meta) + "</p>",
              f'<p class="status {"official" if notes.official else "unofficial"}">{_e(notes.status)}</p>']
+    if probe is not None:
+        parts.append(f'<p class="meta">Probe report: <a href="{_e(probe[0])}">{_e(probe[0])}</a>{_e(probe[1])}</p>')
     if notes.general:
         parts.append('<ul class="notes">' + "".join(f"<li>{_e(n)}</li>" for n in notes.general) + "</ul>")
     if notes.skipped:
@@ -187,8 +193,11 @@ def examples_caption(strips: Filmstrips) -> str:
 
 
 def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[str, dict[str, Path]],
-                figures: list[FigureFile], root: Path, strips: Filmstrips | None = None) -> str:
-    """The whole report page; every path it references lies under `root`."""
+                figures: list[FigureFile], root: Path, strips: Filmstrips | None = None, checkpoints=None,
+                probe: tuple[str, str] | None = None) -> str:
+    """The whole report page; every path it references lies under `root` (but a linked probe report).
+
+    checkpoints: a CheckpointSweep (report/checkpoints.py) or None; probe: (href, note) of a probe report."""
     tb = {table.key: table for table in tables}
     fig = {f.key: f for f in figures}
     strips = strips or Filmstrips(())
@@ -226,6 +235,17 @@ def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[
         paired += ['<details class="more"><summary>Every measurement as a heatmap</summary>']
         paired += figure("poi_heatmaps", "") + ["</details>"]
     body["paired"] = paired
+    if checkpoints is not None:
+        n_runs, n_ckpt = len(checkpoints.runs), len(checkpoints.checkpoints)
+        intro = (f"{n_ckpt} evaluated checkpoint{'s' if n_ckpt != 1 else ''}"
+                 f" from {n_runs} training run{'s' if n_runs != 1 else ''} ({', '.join(checkpoints.runs)})"
+                 + (f", compared with base Wan ({data.table.models[checkpoints.base]})."
+                    if checkpoints.base is not None else "."))
+        body["checkpoints"] = [f'<p class="caption">{_e(intro)}</p>']
+        if checkpoints.notes:
+            body["checkpoints"].append('<ul class="notes">' + "".join(f"<li>{_e(n)}</li>" for n in checkpoints.notes)
+                                       + "</ul>")
+        body["checkpoints"] += (figure("metric_vs_step") + table("checkpoint_sweep") + table("checkpoint_paired"))
     body["uncertainty"] = figure("metric_intervals", "")
     body["runs"] = ['<div class="scroll">', runs_table(data, notes.extra_reasons), "</div>"]
 
@@ -235,7 +255,7 @@ def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
              '<meta name="viewport" content="width=device-width, initial-scale=1">',
              "<title>RigidBench report</title>", f"<style>{CSS}</style></head><body>"]
-    parts += header(data, notes)
+    parts += header(data, notes, probe)
     parts.append('<nav class="toc">' + "".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in sections) + "</nav>")
     for anchor, title in sections:
         parts += [f'<section id="{anchor}">', f"<h2>{_e(title)}</h2>", *body[anchor], "</section>"]
