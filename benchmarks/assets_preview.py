@@ -43,7 +43,9 @@ def _setup_render(width: int, height: int, samples: int) -> None:
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.image_settings.file_format = "PNG"
-    scene.view_settings.view_transform = "AgX"
+    from rigidbench.blender.render import set_color_management
+
+    set_color_management(scene)  # the benchmark's own colour management (Standard view transform)
     scene.render.film_transparent = False
 
 

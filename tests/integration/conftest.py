@@ -107,8 +107,8 @@ def bounce_spec(reg: Registry, asset: str = "baseball", drop_m: float = 0.6, **k
 def ramp_collision_spec(reg: Registry, left: str = "orange", right: str = "apple", gap_m: float = 0.12,
                         **kw) -> SceneSpec:
     """Two 0.40 x 0.20 x 0.25 m ramps facing each other, feet ``gap_m`` apart, one object on each."""
-    lr = ramp_body(reg, "left_ramp", 0.40, 0.20, 0.25, foot_x_m=-gap_m / 2, descends="+x")
-    rr = ramp_body(reg, "right_ramp", 0.40, 0.20, 0.25, foot_x_m=gap_m / 2, descends="-x")
+    lr = ramp_body(reg, "ramp_a", 0.40, 0.20, 0.25, foot_x_m=-gap_m / 2, descends="+x")
+    rr = ramp_body(reg, "ramp_b", 0.40, 0.20, 0.25, foot_x_m=gap_m / 2, descends="-x")
     return make_spec(reg, "ramp_collision", [lr, rr, on_ramp(reg, f"{left}_0", left, lr),
                                              on_ramp(reg, f"{right}_1", right, rr)], **kw)
 

@@ -142,7 +142,7 @@ def test_ramp_objects_roll_down_and_reach_the_foot(reg):
     result = _simulate(spec, reg)
     traj = result.trajectory
     assert traj.roles == ("passive", "passive", "active", "active")
-    for ramp_name, obj, plus in (("left_ramp", "orange_0", True), ("right_ramp", "apple_1", False)):
+    for ramp_name, obj, plus in (("ramp_a", "orange_0", True), ("ramp_b", "apple_1", False)):
         ramp = spec.body(ramp_name)
         i = traj.index(ramp_name)
         assert np.allclose(traj.positions_m[i], traj.positions_m[i, 0], atol=1e-9)  # passive ramps stay put
@@ -168,7 +168,7 @@ def test_ramp_objects_roll_down_and_reach_the_foot(reg):
             assert np.allclose(c.normals, slope_normal, atol=1e-4)
     pairs = {(c.a, c.b) for c in result.contacts}
     assert ("orange_0", "apple_1") in pairs  # they meet between the ramps
-    assert ("orange_0", "left_ramp") in pairs and ("apple_1", "right_ramp") in pairs
+    assert ("orange_0", "ramp_a") in pairs and ("apple_1", "ramp_b") in pairs
 
 
 @requires_bpy

@@ -81,13 +81,13 @@ def test_ramp_placement_quarter_down_and_on_slope(rows, reg):
         if row.task != "ramp_collision":
             continue
         spec = build_scene_spec(row, reg)
-        left, right = spec.body("left_ramp"), spec.body("right_ramp")
+        left, right = spec.body("ramp_a"), spec.body("ramp_b")
         gap = (right.position_m[0] - right.ramp.length_m / 2) - (left.position_m[0] + left.ramp.length_m / 2)
         assert 0.10 <= gap <= 0.15
-        for ramp_name, obj in (("left_ramp", spec.active[0]), ("right_ramp", spec.active[1])):
+        for ramp_name, obj in (("ramp_a", spec.active[0]), ("ramp_b", spec.active[1])):
             ramp = spec.body(ramp_name)
             shape = ramp.ramp
-            sign = 1 if ramp_name == "left_ramp" else -1
+            sign = 1 if ramp_name == "ramp_a" else -1
             top_x = ramp.position_m[0] - sign * shape.length_m / 2
             theta = math.atan2(shape.height_m, shape.length_m)
             normal = np.array([sign * math.sin(theta), 0, math.cos(theta)])

@@ -285,7 +285,8 @@ def watermelon() -> np.ndarray:
     u, _ = uv_grid(H, W)
     warp = 0.35 * fbm(p, seed=91, freq=3.0) + 0.15 * fbm(p, seed=92, freq=9.0)
     stripe = np.cos(16 * 2 * np.pi * u + 2.5 * warp)
-    img = blend(fill(H, W, [0.55, 0.72, 0.3]), [0.1, 0.3, 0.08], smoothstep(-0.2, 0.25, stripe))
+    # rind: mid green with dark green stripes (a photo's rind averages about (60, 110, 45) sRGB)
+    img = blend(fill(H, W, [0.34, 0.55, 0.2]), [0.06, 0.24, 0.05], smoothstep(-0.2, 0.25, stripe))
     img = blend(img, [0.85, 0.82, 0.45], smoothstep(0.55, 0.85, -p[..., 1] + 0.2 * fbm(p, seed=93, freq=2.0))
                 * 0.75)  # ground spot
     return blend(img, [0.3, 0.35, 0.12], smoothstep(0.97, 0.995, np.abs(p[..., 2])))

@@ -108,6 +108,27 @@ def pick_device(prefs: Any, request: str) -> RenderDevice:
     return RenderDevice("CPU", (f"{_cpu_name()} ({os.cpu_count()} threads)",))
 
 
+# Colour management of the RGB frames, set explicitly rather than left at Blender's default (AgX since
+# 4.0). AgX desaturates bright saturated albedos towards beige/cream (a measured lemon at the preview
+# preset: AgX (216, 192, 140) sRGB, AgX Punchy (200, 173, 109), Standard (242, 228, 99); a photo's
+# lemon is about (240, 220, 60)), so the frames use the plain sRGB transfer ("Standard", no look),
+# which maps the textures' sRGB albedos back to themselves under unit lighting, as a camera's
+# standard picture profile roughly does. Recorded per bundle as render.color_management.
+COLOR_MANAGEMENT = {"display_device": "sRGB", "view_transform": "Standard", "look": "None", "exposure": 0.0,
+                    "gamma": 1.0}
+
+
+def set_color_management(scene: Any) -> None:
+    """Apply ``COLOR_MANAGEMENT`` to ``scene``."""
+    scene.display_settings.display_device = COLOR_MANAGEMENT["display_device"]
+    vs = scene.view_settings
+    vs.view_transform = COLOR_MANAGEMENT["view_transform"]
+    vs.look = COLOR_MANAGEMENT["look"]
+    vs.exposure = COLOR_MANAGEMENT["exposure"]
+    vs.gamma = COLOR_MANAGEMENT["gamma"]
+    vs.use_curve_mapping = False
+
+
 def configure_cycles(scene: Any, preset: RenderPreset, seed: int, device: RenderDevice,
                      threads: int | None = None) -> None:
     """Cycles settings shared by every frame (paper, table "Simulation and rendering configuration")."""
@@ -134,6 +155,7 @@ def configure_cycles(scene: Any, preset: RenderPreset, seed: int, device: Render
     c.transmission_bounces = preset.transmission_bounces
     c.pixel_filter_type = "BLACKMAN_HARRIS"
     light_transport(scene, preset)
+    set_color_management(scene)
     r.image_settings.file_format = "PNG"
     r.image_settings.color_mode = "RGB"
     r.image_settings.color_depth = "8"
@@ -501,7 +523,8 @@ def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
     return dataclasses.replace(spec, render_preset=preset)
 
 
-__all__ = ["RenderDevice", "select_device", "pick_device", "configure_cycles", "beauty_mode", "light_transport",
+__all__ = ["RenderDevice", "select_device", "pick_device", "COLOR_MANAGEMENT", "set_color_management",
+           "configure_cycles", "beauty_mode", "light_transport",
            "drop_bump_mapping", "DENOISE_SETTINGS", "data_mode", "add_pass_output",
            "pass_file", "read_passes", "Dressing", "assets_available", "dress_scene", "ExampleRender",
            "build_search_scene", "resolve_camera", "render_example", "DEVICE_CHOICES"]

@@ -32,7 +32,7 @@ from ..context import RunContext
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, Resources, Shard, make_executor
 from ..groundtruth import bundle as B
-from ..groundtruth.camera_model import intrinsics
+from ..groundtruth.camera_model import intrinsics, project
 from ..groundtruth.contact_sheet import write_contact_sheet
 from ..groundtruth.contacts import quat_to_matrix
 from ..groundtruth.tracks import DEPTH_TOLERANCE, EROSION_RADIUS_PX, POINTS_PER_ACTOR, ground_truth_tracks
@@ -65,6 +65,22 @@ def is_complete(data_dir: Path, row: ManifestRow) -> bool:
 
 
 # -- one example, in this process ------------------------------------------------------------------
+
+
+def image_sides(names: Sequence[str], positions_m: np.ndarray, K: np.ndarray, R_c: np.ndarray,
+                t_c: np.ndarray) -> dict[str, Any]:
+    """Which side of the image each actor starts on, from the camera's point of view: actor centres at
+    frame 0 (``positions_m`` (N,3)) are projected and compared with the mean projected x of all
+    actors; "left" means a smaller image column (x) than that mean. Actor names themselves are neutral
+    (e.g. ramp_a / ramp_b in ramp_collision) because the camera may view the task from either side."""
+    uv, _ = project(np.asarray(positions_m, float), K, R_c, t_c)
+    x = uv[:, 0]
+    mid = float(x.mean())
+    return {"convention": "camera view at frame 0: left = projected actor centre has a smaller image x "
+                          "(column) than the mean over actors (within 0.5 px: centre)",
+            "actors": {n: ("left" if xi < mid - 0.5 else "right" if xi > mid + 0.5 else "centre")
+                       for n, xi in zip(names, map(float, x))},
+            "image_x_px": {n: round(float(xi), 2) for n, xi in zip(names, x)}}
 
 
 def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -> None:
@@ -109,6 +125,7 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
     meta = B.make_metadata(spec, resolution=preset.resolution, frames=T, simulated_frames=result.simulation.frames,
                            fps=float(spec.sim.fps), render=render_facts, software=software, seconds=seconds,
                            tracks=track_facts)
+    meta["image_sides"] = image_sides(names, traj.positions_m[:, 0], K, R_c, t_c)
     B.write_json(tmp / B.METADATA_FILE, meta)
 
 

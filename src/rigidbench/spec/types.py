@@ -45,7 +45,7 @@ class RampShape:
 
 @dataclass(frozen=True)
 class Body:
-    name: str  # unique actor name within the example, e.g. "apple_0", "left_ramp"
+    name: str  # unique actor name within the example, e.g. "apple_0", "ramp_a"
     asset: str  # object id, or "ramp"
     role: str  # "active" (simulated, scored) or "passive" (task geometry such as ramps)
     step: str  # the task step that placed it
