@@ -9,7 +9,7 @@ example gives the same output however and wherever it runs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from .config import Registry, registry
@@ -23,14 +23,11 @@ class RunContext:
     config_dirs: tuple[Path, ...] = ()
     device: str | None = None
     cache_dir: Path | None = None
-    _registry: list = field(default_factory=list, repr=False, compare=False)
 
     @property
     def registry(self) -> Registry:
-        """The configuration registry (loaded on first use, then kept)."""
-        if not self._registry:
-            self._registry.append(registry(self.config_dirs))
-        return self._registry[0]
+        """The configuration registry of these directories (loaded once per process, ``config.registry``)."""
+        return registry(self.config_dirs)
 
     def job(self) -> dict:
         """The JSON-serialisable part a worker process needs to rebuild this context."""

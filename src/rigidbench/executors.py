@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import logging
 import os
-import time
+from abc import ABC, abstractmethod
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 from .errors import UserError
 from .registry import load_target
@@ -74,17 +74,17 @@ class Resources:
 
 
 @dataclass
-class Executor:
+class Executor(ABC):
     """Base: ``map`` yields (item, record) as items finish, in completion order."""
 
     name: str = "local"
 
+    @abstractmethod
     def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
             on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
         """Run ``worker`` ("module:Class", built as Class(job)) on every item; ``on_result(item, record)`` is
         called on this process as each finishes. ``instance``: a ready worker a local executor uses instead
         (it may hold objects that cannot travel, e.g. models a test built)."""
-        raise NotImplementedError
 
     def close(self) -> None:
         pass
@@ -235,13 +235,5 @@ def failure_record(exc: BaseException) -> dict:
     return {"status": "failed", "error": str(exc)}
 
 
-def timed(fn: Callable[[], dict]) -> dict:
-    """Run ``fn`` and add its wall time in seconds to the record it returns."""
-    t0 = time.time()
-    record = fn()
-    record.setdefault("seconds", round(time.time() - t0, 3))
-    return record
-
-
-__all__ = ["EXECUTORS", "Executor", "LocalExecutor", "RayExecutor", "Resources", "Shard", "failure_record", "make_executor",
-           "timed"]
+__all__ = ["EXECUTORS", "Executor", "LocalExecutor", "RayExecutor", "Resources", "Shard", "failure_record",
+           "make_executor"]

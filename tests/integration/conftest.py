@@ -154,6 +154,27 @@ def render_eval_examples(root, ids: tuple[str, ...], preset: str = "test"):
     return root / "eval"
 
 
+def render_train_examples(root, n: int, preset: str = "test"):
+    """Render the first ``n`` training-manifest rows into ``root/train`` at ``preset``; returns that directory."""
+    from rigidbench import manifest
+    from rigidbench.pipeline.render import render_to_bundle
+
+    reg = load_registry()
+    for row in manifest.train_rows(reg)[:n]:
+        render_to_bundle(row, reg, reg.preset(preset), root)
+    return root / "train"
+
+
+@pytest.fixture(scope="module")
+def torch_single_thread():
+    """torch on one thread for the module (the tiny models' numbers then do not depend on the machine)."""
+    torch = pytest.importorskip("torch")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def hand_specs(reg: Registry | None = None) -> dict[str, SceneSpec]:
     """One hand-built spec per task (realistic body counts), keyed by task id."""
     reg = reg or load_registry()

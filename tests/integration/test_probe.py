@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import requires_bpy
+from conftest import render_train_examples, requires_bpy
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
@@ -19,27 +19,11 @@ CLIPS = 4
 
 
 @pytest.fixture(scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
-def data_and_cache(tmp_path_factory, one_thread):
-    from rigidbench import manifest
-    from rigidbench.config import registry as load_registry
-    from rigidbench.pipeline.render import render_to_bundle
-
-    root = tmp_path_factory.mktemp("data")
-    reg = load_registry()
-    for row in manifest.train_rows(reg)[:CLIPS]:
-        render_to_bundle(row, reg, reg.preset("test"), root)
+def data_and_cache(tmp_path_factory, torch_single_thread):
+    data = render_train_examples(tmp_path_factory.mktemp("data"), CLIPS)
     cache = tmp_path_factory.mktemp("cache")
-    assert main(["preprocess", "--data", str(root / "train"), "--out", str(cache), "--model", "tiny",
-                 "--no-progress"]) == 0
-    return root / "train", cache
+    assert main(["preprocess", "--data", str(data), "--out", str(cache), "--model", "tiny", "--no-progress"]) == 0
+    return data, cache
 
 
 def test_probe_end_to_end_on_tiny(data_and_cache, tmp_path):

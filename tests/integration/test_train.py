@@ -11,7 +11,7 @@ from types import MappingProxyType
 
 import pytest
 
-from conftest import requires_bpy
+from conftest import render_train_examples, requires_bpy
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
@@ -30,29 +30,13 @@ TRAIN_IDS = 2
 
 
 @pytest.fixture(scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
 def train_split(tmp_path_factory):
     """The first two training-manifest clips rendered at the `test` preset (12 frames, 256x144)."""
-    from rigidbench import manifest
-    from rigidbench.config import registry as load_registry
-    from rigidbench.pipeline.render import render_to_bundle
-
-    root = tmp_path_factory.mktemp("data")
-    reg = load_registry()
-    for row in manifest.train_rows(reg)[:TRAIN_IDS]:
-        render_to_bundle(row, reg, reg.preset("test"), root)
-    return root / "train"
+    return render_train_examples(tmp_path_factory.mktemp("data"), TRAIN_IDS)
 
 
 @pytest.fixture(scope="module")
-def cache(train_split, tmp_path_factory, one_thread):
+def cache(train_split, tmp_path_factory, torch_single_thread):
     out = tmp_path_factory.mktemp("cache")
     assert main(["preprocess", "--data", str(train_split), "--out", str(out), "--model", "tiny", "--no-progress"]) == 0
     return out
@@ -81,7 +65,7 @@ def test_preprocess_writes_a_resumable_float16_cache(cache, train_split, capsys)
     assert json.loads((cache / "manifest.json").read_text())["shards"] == manifest["shards"]
 
 
-def test_the_tiny_model_overfits_two_clips(cache, tmp_path, one_thread):
+def test_the_tiny_model_overfits_two_clips(cache, tmp_path, torch_single_thread):
     c = LatentCache(cache)
     objective = FlowMatchingObjective()
     z, text = c.batch([0, 1])
@@ -111,7 +95,7 @@ class Killed(Exception):
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(cache, tmp_path_factory, one_thread):
+def uninterrupted(cache, tmp_path_factory, torch_single_thread):
     """6-step LoRA and full runs with checkpoints at 3 and 6, never stopped."""
     runs = {}
     for mode in ("lora", "full"):
@@ -121,7 +105,7 @@ def uninterrupted(cache, tmp_path_factory, one_thread):
 
 
 @pytest.mark.parametrize("mode", ["lora", "full"])
-def test_kill_and_resume_reproduces_the_uninterrupted_loss_curve(mode, cache, uninterrupted, tmp_path, one_thread):
+def test_kill_and_resume_reproduces_the_uninterrupted_loss_curve(mode, cache, uninterrupted, tmp_path, torch_single_thread):
     run = tmp_path / "run"
 
     def kill_after_5(record):
@@ -153,7 +137,7 @@ def test_a_run_refuses_to_resume_with_other_settings(cache, uninterrupted):
         train(tiny_cfg("lora", 6, 3, "optimizer.lr=0.5"), cache, uninterrupted["lora"], progress=False)
 
 
-def test_older_checkpoints_can_drop_their_training_state_but_keep_their_exports(cache, tmp_path, one_thread):
+def test_older_checkpoints_can_drop_their_training_state_but_keep_their_exports(cache, tmp_path, torch_single_thread):
     run = tmp_path / "run"
     train(tiny_cfg("lora", 4, 1, "keep_training_states=2"), cache, run, progress=False)
     steps = sorted((run / "checkpoints").iterdir())
@@ -214,7 +198,7 @@ def _velocity(model):
         return transformer_prediction(model, objective.prepare(z, noise, index), torch.randn(1, 512, 32, generator=g))
 
 
-def test_tiny_lora_and_full_checkpoints_load_through_the_wan_predictor(uninterrupted, train_split, one_thread):
+def test_tiny_lora_and_full_checkpoints_load_through_the_wan_predictor(uninterrupted, train_split, torch_single_thread):
     from rigidbench.groundtruth.bundle import Sample
     from rigidbench.predictors import PREDICTORS, PredictContext
 
@@ -245,7 +229,7 @@ def test_tiny_lora_and_full_checkpoints_load_through_the_wan_predictor(uninterru
         assert not torch.allclose(_velocity(tiny.tiny_transformer()), _velocity(reference), atol=1e-5)
 
 
-def test_sharded_preprocess_reads_as_the_single_cache(train_split, cache, tmp_path, one_thread):
+def test_sharded_preprocess_reads_as_the_single_cache(train_split, cache, tmp_path, torch_single_thread):
     """Shards 0/2 and 1/2 (job arrays; Ray runs the same parts) write CACHE/part-I-of-2; read together they
     hold exactly the examples, prompts and latents of one unsharded run."""
     out = tmp_path / "sharded"

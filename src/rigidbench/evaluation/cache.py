@@ -6,6 +6,8 @@ import hashlib
 import json
 from pathlib import Path
 
+from ..jsonio import write_json as _write
+
 SCORE_VERSION = "2"  # 2: ATE-3D against the simulated actor positions (the paper's target)
 
 REFERENCE_FILES = ("metadata.json", "masks.npz", "depth.npz", "tracks.npz", "trajectories.npz", "video.mp4")
@@ -41,7 +43,5 @@ def digest(mapping: dict[str, str]) -> str:
 
 
 def write_json(path: Path, doc: dict) -> None:
-    """Write ``doc`` atomically (temporary file, then rename); NaN is refused."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
-    tmp.replace(path)
+    """An evaluation output, atomically; NaN is refused (non-finite scores are written as null)."""
+    _write(path, doc, indent=2, allow_nan=False)

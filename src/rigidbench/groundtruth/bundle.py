@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import jsonio
 from ..errors import BundleError
 from ..spec.types import SceneSpec
 from ..video import VideoError, probe_video
@@ -81,7 +82,7 @@ def write_depth(path: Path, depth_m: np.ndarray) -> None:
 
 
 def write_json(path: Path, data: Any) -> None:
-    Path(path).write_text(json.dumps(data, indent=1, allow_nan=False) + "\n")
+    jsonio.write_json(path, data, allow_nan=False)
 
 
 def slice_trajectory(trajectory: Trajectory, frames: int) -> Trajectory:

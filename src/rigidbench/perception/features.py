@@ -141,8 +141,12 @@ class FeatureNets:
     @property
     def key(self) -> str:
         """What the scores depend on: which networks are present."""
-        return ",".join(f"{m}={'yes' if getattr(self, n) else 'no'}" for m, n in (("lpips", "lpips"),
-                                                                                   ("iddrift", "identity")))
+        return nets_key(self.lpips is not None, self.identity is not None)
+
+
+def nets_key(lpips: bool, identity: bool) -> str:
+    """The input-key fragment of a set of feature networks: which of them are present."""
+    return f"lpips={'yes' if lpips else 'no'},iddrift={'yes' if identity else 'no'}"
 
 
 def load_lpips(allow_download: bool = False):
@@ -181,6 +185,5 @@ def load_feature_nets(device: str | None = None, allow_download: bool = False) -
 def feature_nets_key() -> str:
     """The ``FeatureNets.key`` that ``load_feature_nets`` would give here, from which weights are present,
     without loading them (a driver whose workers load the networks elsewhere keys examples with it)."""
-    lpips = weights.locate("lpips-lin") is not None and weights.locate("alexnet") is not None
-    dinov2 = weights.locate("dinov2") is not None
-    return FeatureNets(lpips=(lambda: None) if lpips else None, identity=(lambda: None) if dinov2 else None).key
+    return nets_key(weights.locate("lpips-lin") is not None and weights.locate("alexnet") is not None,
+                    weights.locate("dinov2") is not None)

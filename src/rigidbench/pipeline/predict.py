@@ -30,7 +30,7 @@ from ..evaluation.provenance import versions
 from ..groundtruth.bundle import Sample, bundle_dirs
 from ..perception.gt import state_path
 from ..predictors import Kind, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs, predictor_info
-from ..video import write_video
+from ..video import VIDEO_EXTENSIONS, write_video
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ def finished_ids(out_dir: Path, settings: dict, needs_state: bool) -> set[str]:
             log.info("%s held %s; writing the selected predictions again for %s", out_dir, previous, settings)
         path.write_text(json.dumps(settings) + "\n")
         return set()
-    videos = [v for v in out_dir.iterdir() if v.suffix.lower() in (".mp4", ".webm", ".mov", ".mkv")]
+    videos = [v for v in out_dir.iterdir() if v.suffix.lower() in VIDEO_EXTENSIONS]
     return {v.stem for v in videos
             if "." not in v.stem and not v.name.startswith(".") and (not needs_state or state_path(v).exists())}
 
@@ -234,7 +234,7 @@ def _dry_run(predictor: Predictor, refs: list[Path], out_dir: Path, settings: di
     previous = out_dir / SETTINGS_FILE
     same = previous.exists() and json.loads(previous.read_text()) == settings
     for ref in refs:
-        if same and any((out_dir / f"{ref.name}{ext}").exists() for ext in (".mp4", ".webm", ".mov", ".mkv")):
+        if same and any((out_dir / f"{ref.name}{ext}").exists() for ext in VIDEO_EXTENSIONS):
             summary.skipped.append(ref.name)
             continue
         request = predictor.describe(Sample(ref), ctx)

@@ -27,9 +27,7 @@ import hashlib
 import io
 import json
 import logging
-import os
 import re
-import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, fields
@@ -40,6 +38,7 @@ import numpy as np
 
 from ..config import config_file, read_config_yaml
 from ..errors import ConfigError, PredictionError, UserError
+from ..jsonio import write_json
 from ..video import VIDEO_EXTENSIONS
 from .base import PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
 from .replicate import (TOKEN_ENV, CallStats, ClientSettings, Deadline, ReplicateClient, ReplicateError,
@@ -213,18 +212,9 @@ def data_uri(jpeg: bytes) -> str:
 # -- per-example state (resume) ------------------------------------------------------------------------
 
 
-def _write_json_atomic(path: Path, doc: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, indent=1, sort_keys=True)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+def _save_state(path: Path, doc: dict) -> None:
+    """A prediction's resume state, fsynced before the rename: it is what keeps a rerun from paying twice."""
+    write_json(path, doc, durable=True, sort_keys=True)
 
 
 def _read_state(path: Path) -> dict | None:
@@ -386,9 +376,9 @@ class HostedPredictor(Predictor):
             t0 = time.monotonic()
             prediction = client.create(model.replicate, self._inputs(model, inputs, image_ref, ctx), deadline, stats)
             timings["create_s"] = time.monotonic() - t0
-            _write_json_atomic(state_path, {"prediction_id": prediction["id"], "model": model.replicate,
-                                            "fingerprint": fingerprint, "status": prediction.get("status"),
-                                            "created_at": prediction.get("created_at")})
+            _save_state(state_path, {"prediction_id": prediction["id"], "model": model.replicate,
+                                     "fingerprint": fingerprint, "status": prediction.get("status"),
+                                     "created_at": prediction.get("created_at")})
         pid = prediction["id"]
 
         t0 = time.monotonic()
@@ -401,8 +391,8 @@ class HostedPredictor(Predictor):
             timings["wait_s"] = time.monotonic() - t0
         status = prediction.get("status")
         if status != "succeeded":
-            _write_json_atomic(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
-                                            "fingerprint": fingerprint})
+            _save_state(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
+                                     "fingerprint": fingerprint})
             error = prediction.get("error") or "no error message"
             raise PredictionError(f"prediction {pid} {status}: {client.scrub(str(error))}")
         url = output_url(prediction.get("output"))
@@ -416,8 +406,8 @@ class HostedPredictor(Predictor):
         except PredictionError as exc:
             raise PredictionError(f"prediction {pid}: {exc}") from None
         timings["download_s"] = time.monotonic() - t0
-        _write_json_atomic(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
-                                        "fingerprint": fingerprint, "downloaded": True})
+        _save_state(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
+                                 "fingerprint": fingerprint, "downloaded": True})
         return Prediction(video_path=video, metadata=self._metadata(prediction, model, ctx, stats, timings, resumed,
                                                                      replaced, sent_as, size))
 

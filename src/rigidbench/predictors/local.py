@@ -32,6 +32,7 @@ from __future__ import annotations
 import gc
 import logging
 import time
+from abc import abstractmethod
 from pathlib import Path
 from typing import Any
 
@@ -213,9 +214,9 @@ class LocalVideoModel(Predictor):
     def _resolve_device(ctx: PredictContext) -> str:
         return resolve_device(ctx.run.device)
 
+    @abstractmethod
     def load_pipeline(self, ctx: PredictContext, dtype):
         """Build the pipeline from the hub or ``model_path`` (not moved to a device yet)."""
-        raise NotImplementedError
 
     def configure(self, pipe, ctx: PredictContext, injected: bool):
         """Model-specific changes to a loaded or injected pipeline (checkpoint, guardrail); returns it."""

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..context import RunContext
 from ..errors import UserError
+from ..perception.device import resolve_device
 from ..registry import load_target
 
 PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
@@ -52,11 +53,7 @@ def cmd_extract(args, ctx: RunContext) -> int:
 def cmd_fit(args, ctx: RunContext) -> int:
     fit = load_target("rigidbench.probe.fit:run_fit", "command")
     settings_cls = load_target("rigidbench.probe.fit:ProbeSettings", "command")
-    device = args.net_device or ctx.device
-    if device is None:
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(args.net_device or ctx.device)
     settings = settings_cls(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device)
     records = fit(args.acts, args.out, targets=args.targets.split(",") if args.targets else None,
                   probes=tuple(args.probes.split(",")), blocks=parse_ints(args.blocks, "--blocks"),

@@ -20,6 +20,7 @@ import torch
 
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..perception.device import resolve_device
 from ..train.cache import LatentCache
 from ..train.objective import FlowMatchingObjective
 from . import model as wan
@@ -88,7 +89,7 @@ def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None
     bundles = {d.name: d for d in bundle_dirs(split_dir)}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    dev = torch.device(resolve_device(device))
     transformer = wan.load_backbone(backbone, model, model_path, dev, dtype)
     settings = _settings(backbone, model, model_path, cache, split_dir, taus, seed, transformer)
     ids = [i for i in cache.ids if i in bundles][: limit if limit is not None else None]

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ..perception.device import resolve_device
 from ..stats.bootstrap import bootstrap_ci
 from ..train.cache import LatentCache
 from ..train.objective import FlowMatchingObjective
@@ -115,7 +116,7 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
     chosen = [i for i in train_ids if i in cache.manifest["examples"]][:clips]
     if not chosen:
         raise UserError(f"{acts}: no training-split clips of the store are in the cache {cache_dir}")
-    dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    dev = torch.device(resolve_device(device))
     transformer = wan.load_backbone(man["backbone"], man["model"], man.get("model_path"), dev, dtype)
     obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, transformer.config.patch_size)
     eff_path = out / "effects.jsonl"

@@ -14,12 +14,12 @@ atomically, lists it last; a rerun skips the clips of listed chunks and overwrit
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import UserError
+from ..jsonio import write_json
 
 MANIFEST = "manifest.json"
 STORE_VERSION = 1
@@ -28,9 +28,7 @@ PAPER_SPLIT = (4000, 500, 500)
 
 
 def atomic_json(path: Path, data) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    write_json(path, data, sort_keys=True)
 
 
 def assign_splits(ids: list[str], seed: int = 0) -> dict[str, str]:

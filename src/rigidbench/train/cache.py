@@ -39,6 +39,7 @@ from typing import Any
 import torch
 
 from ..errors import ConfigError, UserError
+from ..jsonio import write_json
 
 CACHE_VERSION = 1
 MANIFEST = "manifest.json"
@@ -50,10 +51,6 @@ def prompt_key(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-def _atomic_json(path: Path, data: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
-    os.replace(tmp, path)
 
 
 def _atomic_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
@@ -151,7 +148,7 @@ class CacheWriter:
 
     def _save_manifest(self) -> None:
         self.manifest["updated"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        _atomic_json(self.dir / MANIFEST, self.manifest)
+        write_json(self.dir / MANIFEST, self.manifest, sort_keys=True)
 
     def set(self, **fields) -> None:
         """Record extra manifest fields (e.g. latent_shape, text_dim once known)."""

@@ -26,10 +26,11 @@ import torch
 
 from ..benchmark import full_prompt
 from ..errors import EXAMPLE_ERRORS, BundleError
+from ..executors import Shard
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..perception.device import resolve_device
 from ..video import resize_frames
 from . import models
-from ..executors import Shard
 from .cache import CacheWriter, part_dir, prompt_key
 from .config import model_spec
 
@@ -47,12 +48,6 @@ class PreprocessSummary:
     failed: dict[str, str] = field(default_factory=dict)
     prompts_encoded: int = 0
     device: str = "cpu"
-
-
-def pick_device(device: str | None) -> torch.device:
-    if device:
-        return torch.device(device)
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 def read_frames(sample: Sample, frames: int, size: tuple[int, int]):
@@ -86,7 +81,7 @@ def run_preprocess(data: str | Path, out: str | Path, *, model: str = "wan-2.2",
     dirs = shard.select(bundle_dirs(split_dir)[: limit if limit is not None else None])
     if shard.count > 1:
         out = part_dir(out, shard.index, shard.count)
-    dev = pick_device(device)
+    dev = torch.device(resolve_device(device))
     summary = PreprocessSummary(cache=Path(out), device=str(dev))
     source = {"data": str(split_dir.resolve()), "model_path": model_path, "hub_id": spec.hub_id}
     writer = CacheWriter(out, {"model": model, "width": spec.width, "height": spec.height, "frames": spec.frames,
