@@ -98,41 +98,18 @@ def _save_png(pixels: np.ndarray, path: Path) -> None:
     bpy.data.images.remove(img)
 
 
-def _world(hdri: str, strength: float) -> None:
-    import bpy
-
-    world = bpy.data.worlds.new("preview_world")
-    world.use_nodes = True
-    nodes, links = world.node_tree.nodes, world.node_tree.links
-    env = nodes.new("ShaderNodeTexEnvironment")
-    env.image = bpy.data.images.load(bpy.utils.system_resource("DATAFILES", path="studiolights/world") + f"/{hdri}",
-                                     check_existing=True)
-    links.new(env.outputs["Color"], nodes["Background"].inputs["Color"])
-    nodes["Background"].inputs["Strength"].default_value = strength
-    bpy.context.scene.world = world
-
-
 def preview_objects(out: Path, tile: int, samples: int, only: list[str] | None) -> dict:
     import bpy
 
-    from rigidbench.assets._mesh import box, to_object
-    from rigidbench.assets.materials import painted
     from rigidbench.assets.objects import build_object
+    from rigidbench.assets.scenes import build_studio
     from rigidbench.config import registry
 
     reg = registry()
     ids = only or sorted(reg.objects)
     _reset()
     _setup_render(tile, tile, samples)
-    _world("courtyard.exr", 1.0)
-    floor = to_object(box((40.0, 40.0, 0.02), offset_m=(0, 0, -0.01)), "floor",
-                      [painted("preview_floor", (0.55, 0.53, 0.5), 0.6)])
-    del floor
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.data.angle = math.radians(5)
-    sun.rotation_euler = (math.radians(40), 0, math.radians(30))
-    bpy.context.scene.collection.objects.link(sun)
+    build_studio(bpy.context.scene)
     cam = _camera(50.0)
     timings, tiles = {}, []
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,123 +1,344 @@
-"""Regenerate docs/gallery/: a contact sheet for one eval example of every task and every scene.
+"""Regenerate docs/gallery/: one sheet per task and per scene (all different eval examples) and an
+objects sheet, rendered at the `paper` preset.
 
-    python scripts/make_gallery.py [--data /tmp/rigidbench_gallery] [--quality preview] [--workers 1]
+    python scripts/make_gallery.py [--work /tmp/rigidbench_gallery] [--quality paper] [--only 00027,objects]
+    python scripts/make_gallery.py --before-data DIR --before-objects PNG   # also the before/after thumbnails
 
-Picks eval manifest rows so that every scene appears once and, among them, every task (one row
-per scene, preferring a task not yet covered; a task still missing gets its first row), renders
-them with the normal pipeline (``rigidbench render``'s code: complete bundles in the scratch data
-directory are reused), writes each contact sheet (``rigidbench show``'s code) and saves it as a
-palette PNG under ``MAX_BYTES``: ``task_<task>.png`` and ``scene_<scene>.png``, plus README.md
-listing them. Takes about 15 minutes on a 2-core CPU at `preview`.
+Each example is simulated and its data passes (masks, depth, hence the ground-truth tracks) are
+rendered for every frame, but RGB only at its event frames (release, first new contact, rebound
+apex, rest: ``rigidbench.report.gallery.event_frames``), so a sheet costs 3-4 paper frames
+(30-55 s each on a 2-core CPU) instead of 49. Per-example results land in ``--work`` first and
+are reused, so an interrupted run resumes where it stopped. The objects sheet renders the 24
+objects four at a time on a plain floor under the same studio light as
+``benchmarks/assets_preview.py`` and crops a tile around each. Sheets are JPEG under ``MAX_BYTES``.
+
+``--before-data`` takes bundles of the same example ids rendered by an older checkout (any
+preset) and writes ``before_after/<scene>.jpg``: that first frame beside the new one.
 """
 
 from __future__ import annotations
 
 import argparse
-import io
+import json
 import logging
+import math
+import shutil
 import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT_DIR = ROOT / "docs" / "gallery"
-MAX_BYTES = 300_000
-DPI_STEPS = (110, 95, 80, 65)  # contact-sheet resolutions tried, largest first, until the PNG fits
+MAX_BYTES = 1_000_000
+OBJECTS_PER_RENDER = 4
+THUMB_W = 480
 
 log = logging.getLogger("make_gallery")
 
 
-def pick_rows(rows: list, tasks: list[str], scenes: list[str]) -> tuple[dict, dict]:
-    """rows: eval ManifestRows. Returns ({task: row}, {scene: row}) covering every task and scene."""
-    by_scene, by_task = {}, {}
-    for scene in scenes:
-        candidates = [r for r in rows if r.scene == scene]
-        if not candidates:
-            raise ValueError(f"no eval row uses scene '{scene}'; check configs/splits.yaml")
-        fresh = [r for r in candidates if r.task not in by_task]
-        row = (fresh or candidates)[0]
-        by_scene[scene] = row
-        by_task.setdefault(row.task, row)
-    for task in tasks:
-        if task not in by_task:
-            by_task[task] = next(r for r in rows if r.task == task)
-    return by_task, by_scene
+# -- one example ---------------------------------------------------------------------------------
 
 
-def sheet_png(sample, max_bytes: int = MAX_BYTES) -> bytes:
-    """Contact sheet of ``sample`` as PNG bytes (256-colour palette) no larger than ``max_bytes``."""
+def render_example_events(row, reg, preset, work: Path) -> Path:
+    """Render ``row``'s event frames into ``work/<id>/`` (frames/*.png, gt.npz, info.json); reused if done."""
     from PIL import Image
 
-    from rigidbench.groundtruth.contact_sheet import write_contact_sheet
+    from rigidbench.blender.camera import camera_pose
+    from rigidbench.blender.render import render_example
+    from rigidbench.groundtruth import bundle as B
+    from rigidbench.groundtruth.camera_model import intrinsics
+    from rigidbench.groundtruth.contacts import quat_to_matrix
+    from rigidbench.groundtruth.tracks import ground_truth_tracks
+    from rigidbench.report.gallery import event_frames, marker_subset
+    from rigidbench.spec.build import build_scene_spec
 
-    data = b""
-    for dpi in DPI_STEPS:
+    final = work / row.sample_id
+    if (final / "info.json").exists():
+        return final
+    tmp = work / f".{row.sample_id}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    chosen: list = []
+
+    def pick(sim):
+        chosen[:] = event_frames(sim.trajectory, sim.contacts, min(preset.frames, sim.frames))
+        return [e.frame for e in chosen]
+
+    spec = build_scene_spec(row, reg)
+    result = render_example(spec, reg, preset, tmp / "frames", tmp / ".passes", rgb_frames=pick)
+    shutil.rmtree(tmp / ".passes")
+    spec = result.spec
+    T = result.index.shape[0]
+    names = tuple(b.name for b in spec.bodies)
+    traj = B.slice_trajectory(result.simulation.trajectory, T)
+    masks = B.masks_from_index(result.index, len(names))
+    R_c, t_c = camera_pose(spec.camera)
+    K = intrinsics(spec.camera.lens_mm, spec.camera.sensor_width_mm, *preset.resolution)
+    tracks = ground_truth_tracks(masks, result.depth_m, K, R_c, t_c, quat_to_matrix(traj.quat_wxyz), traj.positions_m,
+                                 np.array([b.role == "active" for b in spec.bodies]), seed=spec.seed)
+    keep = marker_subset(tracks.actor_index)
+    frames = [e.frame for e in chosen]
+    np.savez_compressed(tmp / "gt.npz", masks=masks[frames], depth=result.depth_m[frames],
+                        tracks=tracks.tracks_px[keep], visibility=tracks.visibility[keep],
+                        actor_index=tracks.actor_index[keep])
+    legend = [f"{b.name}: {b.ramp.material if b.ramp is not None else b.asset} ({b.role})" for b in spec.bodies]
+    info = {"sample_id": row.sample_id, "task": row.task, "scene": row.scene, "surface": row.surface,
+            "partition": row.partition, "prompt": spec.prompt, "fps": float(spec.sim.fps), "frames": frames,
+            "events": [[e.frame, e.label] for e in chosen], "legend": legend, "preset": preset.name,
+            "seconds": {k: round(v, 1) for k, v in result.seconds.items()},
+            "camera": {"azimuth_deg": spec.camera.azimuth_deg, "distance_m": spec.camera.distance_m,
+                       "visibility": spec.camera.visibility}}
+    (tmp / "info.json").write_text(json.dumps(info, indent=1))
+    Image.open(tmp / "frames" / f"{frames[0]:05d}.png").load()  # the frames were written
+    shutil.rmtree(final, ignore_errors=True)
+    tmp.rename(final)
+    return final
+
+
+def example_sheet_bytes(path: Path) -> tuple[bytes, dict]:
+    from PIL import Image
+
+    from rigidbench.report.gallery import Event, example_sheet, encode_under
+
+    info = json.loads((path / "info.json").read_text())
+    gt = np.load(path / "gt.npz")
+    frames = {f: np.asarray(Image.open(path / "frames" / f"{f:05d}.png").convert("RGB")) for f in info["frames"]}
+    events = [Event(int(f), str(label)) for f, label in info["events"]]
+    # masks and depth were saved for the event frames only: index them by position
+    T = max(info["frames"]) + 1
+    masks = np.zeros((T, *gt["masks"].shape[1:]), bool)
+    depth = np.full((T, *gt["depth"].shape[1:]), np.inf, np.float32)
+    masks[info["frames"]], depth[info["frames"]] = gt["masks"], gt["depth"]
+    title = (f"{info['sample_id']}  {info['task']} in {info['scene']} ({info['surface']}), "
+             f"{info['partition'].replace('_', ' ')}  -  {info['preset']} preset, {frames[info['frames'][0]].shape[1]}x"
+             f"{frames[info['frames'][0]].shape[0]}")
+    sheet = example_sheet(frames, events, masks, depth, gt["tracks"], gt["visibility"], gt["actor_index"],
+                          info["fps"], title, info["legend"])
+    return encode_under(sheet, MAX_BYTES), info
+
+
+# -- objects ---------------------------------------------------------------------------------------
+
+
+def render_objects(reg, preset, work: Path) -> Path:
+    """Render every object at the paper preset, OBJECTS_PER_RENDER per frame, and crop a square tile
+    around each into ``work/objects/<id>.png``; reused if done."""
+    import bpy
+    from PIL import Image
+
+    from rigidbench.assets.objects import build_object
+    from rigidbench.assets.scenes import build_studio
+    from rigidbench.blender.render import beauty_mode, configure_cycles, select_device
+    from rigidbench.blender.session import reset_scene
+    from rigidbench.groundtruth import camera_model as cm
+
+    out = work / "objects"
+    ids = sorted(reg.objects, key=lambda o: (max(reg.object(o).size_m), o))
+    if all((out / f"{o}.png").exists() for o in ids):
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    device = select_device("auto")
+    for g in range(0, len(ids), OBJECTS_PER_RENDER):
+        group = ids[g:g + OBJECTS_PER_RENDER]
+        if all((out / f"{o}.png").exists() for o in group):
+            continue
+        scene = reset_scene()
+        configure_cycles(scene, preset, seed=g, device=device)
+        beauty_mode(scene, preset, device)
+        build_studio(scene)
+        spacing = 1.35 * max(max(reg.object(o).size_m) for o in group)
+        xs = (np.arange(len(group)) - (len(group) - 1) / 2) * spacing
+        for x, oid in zip(xs, group):
+            ob = build_object(reg.object(oid), f"{oid}_gallery")
+            ob.location = (float(x), 0.0, reg.object(oid).size_m[2] / 2)
+        W, H = preset.resolution
+        half_fov = math.atan(18.0 / 35.0)
+        target = np.array([0.0, 0.0, max(reg.object(o).size_m[2] for o in group) / 2])
+        distance = (len(group) * spacing / 2) / math.tan(half_fov) * 1.02
+        R, t = cm.camera_pose(target, 270.0, 10.0, distance)
+        from mathutils import Matrix
+
+        cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+        cam.data.lens, cam.data.sensor_width, cam.data.sensor_fit = 35.0, 36.0, "HORIZONTAL"
+        cam.matrix_world = Matrix(cm.pose_matrix(R, t).tolist())
+        scene.collection.objects.link(cam)
+        scene.camera = cam
         with tempfile.TemporaryDirectory() as tmp:
-            path = write_contact_sheet(sample, Path(tmp) / "sheet.png", dpi=dpi)
-            image = Image.open(path).convert("RGB")
-        buf = io.BytesIO()
-        image.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
-            buf, format="PNG", optimize=True)
-        data = buf.getvalue()
-        if len(data) <= max_bytes:
-            return data
-    log.warning("%s: contact sheet is %d bytes even at %d dpi", sample.sample_id, len(data), DPI_STEPS[-1])
-    return data
+            scene.render.filepath = str(Path(tmp) / "group.png")
+            bpy.ops.render.render(write_still=True)
+            frame = Image.open(Path(tmp) / "group.png").convert("RGB")
+        K = cm.intrinsics(35.0, 36.0, W, H)
+        half = int(W / len(group) / 2)
+        for x, oid in zip(xs, group):
+            uv, _ = cm.project(np.array([x, 0.0, target[2]]), K, R, t)
+            u, v = int(round(uv[0])), int(round(uv[1]))
+            v = min(max(v, half), H - half)
+            frame.crop((u - half, v - half, u + half, v + half)).save(out / f"{oid}.png")
+        log.info("objects %s rendered", ", ".join(group))
+    return out
 
 
-def readme(by_task: dict, by_scene: dict, quality: str) -> str:
+def objects_sheet_bytes(reg, tiles_dir: Path, preset) -> bytes:
+    from PIL import Image
+
+    from rigidbench.report.gallery import encode_under, objects_sheet
+
+    ids = sorted(reg.objects)
+    size = 300
+    tiles = [(reg.object(o).name, np.asarray(Image.open(tiles_dir / f"{o}.png").convert("RGB").resize((size, size))),
+              reg.object(o).partition != "train") for o in ids]
+    W, H = preset.resolution
+    sheet = objects_sheet(tiles, cols=6, title=f"The {len(ids)} objects at the {preset.name} preset ({W}x{H}, "
+                                              f"{preset.samples} samples), {OBJECTS_PER_RENDER} per render; "
+                                              "held-out objects framed in orange")
+    return encode_under(sheet, MAX_BYTES)
+
+
+# -- before / after ------------------------------------------------------------------------------
+
+
+def before_after(before_png: Path, after_png: Path, label: str) -> bytes:
+    from PIL import Image, ImageDraw
+
+    from rigidbench.report.gallery import encode_under, font
+
+    imgs = []
+    for p in (before_png, after_png):
+        im = Image.open(p).convert("RGB")
+        imgs.append(im.resize((THUMB_W, int(round(THUMB_W * im.height / im.width))), Image.Resampling.LANCZOS))
+    h = max(i.height for i in imgs)
+    sheet = Image.new("RGB", (2 * THUMB_W + 6, h + 26), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for k, (im, name) in enumerate(zip(imgs, ("before", "after"))):
+        sheet.paste(im, (k * (THUMB_W + 6), 26))
+        draw.text((k * (THUMB_W + 6) + 2, 4), f"{label}: {name}", fill=(0, 0, 0), font=font(16))
+    return encode_under(sheet, 200_000)
+
+
+def objects_before_after(reg, before_sheet: Path, tiles_dir: Path, preview_tile: int = 256) -> bytes:
+    """Each object's old look (the first view of its tile in ``benchmarks/assets_preview.py``'s
+    objects.png: ids in sorted order, four per row, two views of ``preview_tile`` px each) beside
+    its new gallery tile."""
+    from PIL import Image
+
+    from rigidbench.report.gallery import encode_under, objects_sheet
+
+    old = Image.open(before_sheet).convert("RGB")
+    tiles = []
+    for k, oid in enumerate(sorted(reg.objects)):
+        r, c = divmod(k, 4)
+        before = old.crop((c * 2 * preview_tile, r * preview_tile, c * 2 * preview_tile + preview_tile,
+                           (r + 1) * preview_tile)).resize((200, 200))
+        after = Image.open(tiles_dir / f"{oid}.png").convert("RGB").resize((200, 200))
+        tiles.append((f"{reg.object(oid).name}: before", np.asarray(before), False))
+        tiles.append(("after", np.asarray(after), reg.object(oid).partition != "train"))
+    return encode_under(objects_sheet(tiles, cols=8, title="Objects before (left, preview light) and after (right)"),
+                        MAX_BYTES)
+
+
+# -- README ----------------------------------------------------------------------------------------
+
+
+def readme(by_task: dict, by_scene: dict, infos: dict, befores: list[str]) -> str:
     lines = ["# Gallery", "",
-             f"Contact sheets of eval examples rendered at the `{quality}` preset: first, middle and last "
-             "frame with the ground-truth point tracks (o visible, x occluded), the actor masks in colour, "
-             "and the depth. Regenerate with `python scripts/make_gallery.py`; one sheet of any rendered "
-             "example comes from `rigidbench show ID`.", "", "## One example per task", "",
-             "| task | example | scene | sheet |", "|---|---|---|---|"]
+             "Every sheet is one eval example rendered at the `paper` preset (1280x704, 32 samples), a "
+             "different example for each sheet. Columns are event frames found from the simulated trajectory "
+             "and contacts (release, first new contact, rebound apex, rest). Rows: the clean RGB frame; the "
+             "same frame with the actor mask outlines and a few ground-truth point tracks (hollow circle: "
+             "visible, cross: occluded, with a short trail); the disparity. Regenerate with "
+             "`python scripts/make_gallery.py` (about an hour on a 2-core CPU; interrupted runs resume). A "
+             "sheet of every frame of any rendered example comes from `rigidbench show ID`.", "",
+             "[All 24 objects](objects.jpg) at the paper preset, held-out ones marked.", "",
+             "## One example per task", "", "| task | example | scene | frames | sheet |", "|---|---|---|---|---|"]
+
+    def frames_of(row):
+        return ", ".join(f"{f} {label}" for f, label in infos[row.sample_id]["events"])
+
     for task, row in sorted(by_task.items()):
-        lines.append(f"| {task} | {row.sample_id} | {row.scene} | [task_{task}.png](task_{task}.png) |")
-    lines += ["", "## One example per scene", "", "| scene | example | task | sheet |", "|---|---|---|---|"]
+        lines.append(f"| {task} | {row.sample_id} | {row.scene} | {frames_of(row)} | [task_{task}.jpg](task_{task}.jpg) |")
+    lines += ["", "## One example per scene", "", "| scene | example | task | frames | sheet |", "|---|---|---|---|---|"]
     for scene, row in sorted(by_scene.items()):
-        lines.append(f"| {scene} | {row.sample_id} | {row.task} | [scene_{scene}.png](scene_{scene}.png) |")
-    lines += ["", *[f"![{t}](task_{t}.png)" for t in sorted(by_task)], ""]
+        lines.append(f"| {scene} | {row.sample_id} | {row.task} | {frames_of(row)} | "
+                     f"[scene_{scene}.jpg](scene_{scene}.jpg) |")
+    if befores:
+        lines += ["", "## Before and after", "",
+                  "First frames of the same examples from the previous scenes and objects (left) and now (right); "
+                  "see `before_after/`.", ""]
+        lines += [f"![{b}](before_after/{b}.jpg)" for b in befores]
+    lines += ["", "![objects](objects.jpg)", "", *[f"![{t}](task_{t}.jpg)" for t in sorted(by_task)], ""]
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default=str(Path(tempfile.gettempdir()) / "rigidbench_gallery"),
-                        help="scratch data directory for the bundles (reused between runs)")
-    parser.add_argument("--quality", default="preview")
-    parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--out", default=str(OUT_DIR))
+    parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "rigidbench_gallery",
+                        help="scratch directory for the per-example renders (reused between runs)")
+    parser.add_argument("--quality", default="paper")
+    parser.add_argument("--out", type=Path, default=OUT_DIR)
+    parser.add_argument("--only", default="", help="comma-separated example ids and/or 'objects' to render now")
+    parser.add_argument("--render-only", action="store_true", help="render into --work, write no sheets")
+    parser.add_argument("--before-data", type=Path, help="split directory of bundles from an older checkout")
+    parser.add_argument("--before-objects", type=Path, help="objects PNG (benchmarks/assets_preview.py) from it")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     from rigidbench import manifest
     from rigidbench.config import registry
-    from rigidbench.groundtruth.bundle import Sample
-    from rigidbench.pipeline.render import bundle_dir, render_rows
+    from rigidbench.report.gallery import pick_examples
 
     reg = registry()
+    preset = reg.preset(args.quality)
     rows = list(manifest.rows("eval", reg))
-    by_task, by_scene = pick_rows(rows, sorted(reg.tasks), sorted(reg.scenes))
+    by_task, by_scene = pick_examples(rows, sorted(reg.tasks), sorted(reg.scenes))
     chosen = sorted({r.sample_id: r for r in [*by_task.values(), *by_scene.values()]}.values(),
                     key=lambda r: r.sample_id)
-    log.info("rendering %d examples at %s into %s: %s", len(chosen), args.quality, args.data,
-             " ".join(r.sample_id for r in chosen))
-    data = Path(args.data)
-    _, failures = render_rows(chosen, reg, data, quality=args.quality, workers=args.workers)
-    if failures:
-        for f in failures:
-            log.error("example %s failed: %s", getattr(f, "sample_id", f), getattr(f, "reason", ""))
+    only = {s for s in args.only.split(",") if s}
+    args.work.mkdir(parents=True, exist_ok=True)
+    failed = []
+    if not only or "objects" in only:
+        render_objects(reg, preset, args.work)
+    for row in chosen:
+        if only and row.sample_id not in only:
+            continue
+        log.info("example %s (%s, %s)", row.sample_id, row.task, row.scene)
+        try:
+            render_example_events(row, reg, preset, args.work)
+        except Exception as exc:  # noqa: BLE001 - report and go on with the other examples
+            log.error("example %s failed: %s", row.sample_id, exc)
+            failed.append(row.sample_id)
+    if args.render_only:
+        return 1 if failed else 0
+    missing = [r.sample_id for r in chosen if not (args.work / r.sample_id / "info.json").exists()]
+    if missing:
+        log.error("not rendered yet: %s; rerun without --only", " ".join(missing))
         return 1
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for old in [*args.out.glob("task_*.png"), *args.out.glob("scene_*.png")]:
+        old.unlink()
+    infos = {}
     for prefix, picks in (("task", by_task), ("scene", by_scene)):
         for key, row in sorted(picks.items()):
-            png = sheet_png(Sample(bundle_dir(data, row)))
-            (out / f"{prefix}_{key}.png").write_bytes(png)
-            log.info("wrote %s (%d KB)", out / f"{prefix}_{key}.png", len(png) // 1024)
-    (out / "README.md").write_text(readme(by_task, by_scene, args.quality))
-    return 0
+            data, infos[row.sample_id] = example_sheet_bytes(args.work / row.sample_id)
+            (args.out / f"{prefix}_{key}.jpg").write_bytes(data)
+            log.info("wrote %s (%d KB)", args.out / f"{prefix}_{key}.jpg", len(data) // 1024)
+    (args.out / "objects.jpg").write_bytes(objects_sheet_bytes(reg, args.work / "objects", preset))
+    befores = []
+    if args.before_data:
+        (args.out / "before_after").mkdir(exist_ok=True)
+        for scene, row in sorted(by_scene.items()):
+            old = args.before_data / row.sample_id / "frames" / "00000.png"
+            if old.exists():
+                new = args.work / row.sample_id / "frames" / "00000.png"
+                (args.out / "before_after" / f"{scene}.jpg").write_bytes(before_after(old, new, f"{scene} ({row.sample_id})"))
+                befores.append(scene)
+    if args.before_objects and args.before_objects.exists():
+        (args.out / "before_after").mkdir(exist_ok=True)
+        data = objects_before_after(reg, args.before_objects, args.work / "objects")
+        (args.out / "before_after" / "objects.jpg").write_bytes(data)
+        befores.append("objects")
+    (args.out / "README.md").write_text(readme(by_task, by_scene, infos, befores))
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -82,6 +82,8 @@ class _Reader:
         value = float(value)
         if positive and not value > 0:
             raise _fail(self.path, self._name(key), f"must be > 0, got {value}")
+        if lo is not None and hi is None and value < lo:
+            raise _fail(self.path, self._name(key), f"must be >= {lo:g}, got {value}")
         if lo is not None and value < lo or hi is not None and value > hi:
             raise _fail(self.path, self._name(key), f"must lie in [{lo}, {hi}], got {value}")
         return value
@@ -131,6 +133,26 @@ class _Reader:
                     raise _fail(self.path, self._name(key), f"unknown value '{v}'" + _suggest(v, choices))
         return tuple(value)
 
+    def text(self, key: str, default: Any = ...) -> str | None:
+        """A non-empty string (or ``default``, which may be None)."""
+        value = self.str(key, default)
+        if value is not None and not value:
+            raise _fail(self.path, self._name(key), "expected a non-empty string")
+        return value
+
+    def numbers(self, cls: type, lows: Mapping[str, float]) -> Any:
+        """A dataclass of numbers from this mapping, each field optional (the dataclass default);
+        integer defaults make integer fields. ``lows`` gives a lower bound per field (else 0)."""
+        names = list(cls.__dataclass_fields__)
+        self.reject_unknown(names)
+        values = {}
+        for n in names:
+            if self.has(n):
+                lo = lows.get(n, 0)
+                default = cls.__dataclass_fields__[n].default
+                values[n] = self.int(n, lo=int(lo)) if isinstance(default, int) else self.float(n, lo=float(lo))
+        return cls(**values)
+
     def sub(self, key: str, default: Any = ...) -> "_Reader":
         return _Reader(self.path, self.raw(key, default), self._name(key) + ".")
 
@@ -145,6 +167,9 @@ class _Reader:
         for key in self.data:
             if key not in allowed:
                 raise _fail(self.path, self._name(str(key)), "unknown field" + _suggest(str(key), allowed))
+
+
+FieldReader = _Reader  # the public name, for config files outside this module (predictors/hosted.py)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -291,6 +316,9 @@ class CameraSettings:
     visibility_threshold: float = 0.5
     rotation_attempts: int = 8
     points_per_target: int = 16
+    view_grid_cols: int = 16  # rays across the image for the clearance and background checks
+    view_grid_rows: int = 9
+    max_obstruction: float = 0.02  # largest fraction of those rays that may hit something nearer than the framed box
 
 
 @dataclass(frozen=True)

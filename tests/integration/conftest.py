@@ -181,6 +181,14 @@ def hand_specs(reg: Registry | None = None) -> dict[str, SceneSpec]:
     return {task: make(reg, task_rotation_deg=30.0) for task, make in TASK_SPECS.items()}
 
 
+@pytest.fixture
+def empty_scene():
+    """A factory-empty Blender scene (the asset tests build into it)."""
+    bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed; run `make test`")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    yield bpy.context.scene
+
+
 @pytest.fixture(scope="session")
 def reg() -> Registry:
     return load_registry()

@@ -25,12 +25,6 @@ pytestmark = pytest.mark.integration
 REG = registry()
 
 
-@pytest.fixture
-def empty_scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    yield bpy.context.scene
-
-
 def local_vertices(ob) -> np.ndarray:
     """Mesh vertices in the object's frame. Returns (V,3) float64 m."""
     co = np.empty(len(ob.data.vertices) * 3, np.float32)

@@ -155,12 +155,17 @@ def test_masks_agree_with_ray_cast(rendered):
 def test_depth_agrees_with_ray_cast(rendered):
     for task, (path, casts) in rendered.items():
         s = B.Sample(path)
-        for f, (_, depth) in casts.items():
+        for f, (index, depth) in casts.items():
             ref = s.depth[f]
             both = np.isfinite(depth) & np.isfinite(ref)
             assert (np.isfinite(depth) == np.isfinite(ref)).mean() >= 0.99
-            err = np.abs(depth[both] - ref[both])
-            assert err.max() < 1e-3, f"{task} frame {f}: depth differs by up to {err.max() * 1000:.2f} mm"
+            err = np.where(both, np.abs(depth - ref), 0.0)
+            # on the actors, every pixel; elsewhere a ray grazing the edge of thin decor (a rail, a frame)
+            # may pick the surface behind it in one implementation and not the other: a few pixels at most
+            actor = both & (index > 0)
+            assert err[actor].max(initial=0.0) < 1e-3, f"{task} frame {f}: actor depth off by {err[actor].max() * 1000:.2f} mm"
+            off = float((err >= 1e-3).mean())
+            assert off <= 1e-3, f"{task} frame {f}: depth differs on {off:.4%} of pixels (up to {err.max() * 1000:.2f} mm)"
 
 
 def test_track_points_start_inside_their_masks(rendered):

@@ -266,14 +266,15 @@ def chair(style: str = "wood") -> Pieces:
     leg = 0.035
     for sx in (-1, 1):
         for sy in (-1, 1):
-            h = seat_z - 0.03 if sy < 0 else (0.84 if style == "wood" else (0.72 if style == "japandi" else seat_z))
+            h = seat_z - 0.03 if sy < 0 else (0.84 if style in ("wood", "japandi") else seat_z)
             out.append((B((leg, leg, h), (sx * 0.2, sy * 0.2, h / 2)), "chair_frame"))
     out.append((B((0.46, 0.44, 0.035), (0, 0, seat_z - 0.015)), "chair_seat" if style != "wood" else "chair_frame"))
     if style == "wood":
         for z in (0.62, 0.72, 0.8):
             out.append((B((0.4, 0.022, 0.05), (0, 0.2, z)), "chair_frame"))
     elif style == "japandi":
-        out.append((B((0.4, 0.03, 0.16), (0, 0.2, 0.62)), "chair_seat"))
+        out.append((B((0.4, 0.03, 0.15), (0, 0.2, 0.76)), "chair_seat"))  # back rail shows above a table top
+        out.append((B((0.4, 0.022, 0.04), (0, 0.2, 0.6)), "chair_frame"))
     elif style == "metal":
         out.append((B((0.44, 0.025, 0.3), (0, 0.21, 0.7)), "chair_seat"))
         for sx in (-1, 1):
@@ -657,3 +658,23 @@ def combine(pieces: Pieces, offset=(0.0, 0.0, 0.0), rot_deg: float = 0.0) -> Pie
 
 
 __all__ = ["Pieces", "B", "soft", "cyl", "quad", "slab_uv01", "combine", "join"]
+
+
+def utensil_rail(rng, length: float) -> Pieces:
+    """A wall rail with hanging utensils and mugs, all within 4.5 cm of the wall (local +y), centred at z=0."""
+    out: Pieces = [(B((length, 0.012, 0.012), (0, -0.025, 0)), "handle")]
+    for s in (-1, 1):
+        out.append((B((0.02, 0.03, 0.03), (s * (length / 2 - 0.02), -0.015, 0)), "handle"))
+    x = -length / 2 + 0.1
+    k = 0
+    while x < length / 2 - 0.1:
+        if k % 4 == 3:  # a cutting board on a hook
+            out.append((B((0.2, 0.015, 0.3), (x + 0.05, -0.012, -0.17)), "wood"))
+            x += 0.1
+        else:
+            h = float(rng.uniform(0.2, 0.3))
+            out.append((B((0.014, 0.01, h), (x, -0.03, -h / 2 - 0.01)), "wood"))
+            out.append((B((0.06, 0.008, 0.08), (x, -0.03, -h - 0.04)), "wood" if k % 2 else "handle"))
+        x += float(rng.uniform(0.13, 0.2))
+        k += 1
+    return out

@@ -177,55 +177,59 @@ def stamp(img: np.ndarray, mask: np.ndarray, centre_rc: tuple[int, int], colour,
 # ---------------------------------------------------------------------------------------------
 # Fruit and vegetables (sphere UVs unless stated)
 
-H, W = 128, 256
+# 256 x 512 texels: at paper resolution (1280x704) a 20 cm object spans ~200 px, so half its
+# circumference (256 texels) keeps speckles and stripe edges sharp enough for a point tracker
+H, W = 256, 512
 
 
 @functools.cache
 def apple() -> np.ndarray:
     p = sphere_points(H, W)
-    red, deep, green = np.array([0.72, 0.08, 0.06]), np.array([0.45, 0.03, 0.05]), np.array([0.62, 0.72, 0.22])
+    red, deep, green = np.array([0.66, 0.06, 0.05]), np.array([0.42, 0.03, 0.04]), np.array([0.7, 0.62, 0.2])
     streak = fbm(p * np.array([6.0, 6.0, 0.7]), seed=11, freq=3.0)  # streaks run pole to pole
     patch = fbm(p, seed=12, freq=1.6)
     img = blend(fill(H, W, red), deep, smoothstep(-0.2, 0.7, streak))
-    img = blend(img, green, smoothstep(0.15, 0.75, patch) * 0.9)
-    img = blend(img, [0.8, 0.78, 0.3], smoothstep(0.8, 0.97, p[..., 2]) * 0.8)  # yellow-green stem cavity
+    img = blend(img, green, smoothstep(0.45, 0.9, patch) * 0.4)
+    img = blend(img, [0.72, 0.62, 0.22], smoothstep(0.85, 0.97, p[..., 2]) * 0.7)  # yellow-green stem cavity
     img = blend(img, [0.55, 0.6, 0.2], smoothstep(-0.85, -0.98, p[..., 2]))
-    speck = dots(p, fibonacci_sphere(700) + 0.02 * random_unit(700, 13), 0.022)
-    return blend(img, [0.95, 0.85, 0.55], speck * 0.8)
+    speck = dots(p, fibonacci_sphere(1400) + 0.02 * random_unit(1400, 13), 0.014)
+    return blend(img, [0.88, 0.62, 0.38], speck * 0.55)
 
 
 @functools.cache
 def orange() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=21, freq=3.0)
-    img = blend(fill(H, W, [0.9, 0.36, 0.0]), [0.8, 0.27, 0.0], smoothstep(0.0, 0.8, n) * 0.7)
-    img = blend(img, [0.95, 0.48, 0.02], smoothstep(0.2, -0.8, n) * 0.5)
+    img = blend(fill(H, W, [0.9, 0.4, 0.02]), [0.8, 0.3, 0.0], smoothstep(0.0, 0.8, n) * 0.7)
+    img = blend(img, [0.9, 0.46, 0.03], smoothstep(0.2, -0.8, n) * 0.5)
     img = blend(img, [0.35, 0.45, 0.12], smoothstep(0.985, 0.995, p[..., 2]))  # stem scar
     img = blend(img, [0.55, 0.35, 0.1], smoothstep(-0.99, -0.997, p[..., 2]))  # navel
-    speck = dots(p, fibonacci_sphere(900), 0.012)
-    return blend(img, [0.82, 0.36, 0.02], speck * 0.6)
+    speck = dots(p, fibonacci_sphere(2400) + 0.015 * random_unit(2400, 22), 0.012)
+    return blend(img, [0.74, 0.3, 0.02], speck * 0.7)
 
 
 @functools.cache
 def lemon() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=31, freq=3.0)
-    img = blend(fill(H, W, [1.0, 0.85, 0.0]), [0.95, 0.74, 0.0], smoothstep(0.1, 0.9, n) * 0.7)
+    img = blend(fill(H, W, [0.93, 0.8, 0.04]), [0.88, 0.7, 0.02], smoothstep(0.1, 0.9, n) * 0.7)
     tips = smoothstep(0.86, 0.99, np.abs(p[..., 2]))
     img = blend(img, [0.66, 0.72, 0.18], tips * 0.9)
-    speck = dots(p, fibonacci_sphere(900), 0.012)
-    return blend(img, [0.85, 0.7, 0.05], speck * 0.5)
+    speck = dots(p, fibonacci_sphere(2400) + 0.015 * random_unit(2400, 32), 0.012)
+    return blend(img, [0.74, 0.58, 0.03], speck * 0.65)
 
 
 @functools.cache
 def kiwi() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=41, freq=5.0)
-    img = blend(fill(H, W, [0.46, 0.31, 0.14]), [0.36, 0.23, 0.1], smoothstep(-0.4, 0.8, n) * 0.8)
+    img = blend(fill(H, W, [0.46, 0.34, 0.17]), [0.36, 0.26, 0.12], smoothstep(-0.4, 0.8, n) * 0.8)
     img = blend(img, [0.55, 0.4, 0.2], smoothstep(0.3, -0.9, fbm(p, seed=44, freq=2.0)) * 0.5)
     img = blend(img, [0.22, 0.14, 0.06], smoothstep(0.95, 0.995, np.abs(p[..., 2])))  # dried ends
-    speck = dots(p, fibonacci_sphere(1500) + 0.03 * random_unit(1500, 42), 0.014)
-    return blend(img, [0.27, 0.17, 0.07], speck * 0.6)
+    hair = fbm(p, seed=45, freq=40.0, octaves=2)  # fine mottling of the fuzz
+    img = blend(img, [0.32, 0.22, 0.1], smoothstep(0.15, 0.7, hair) * 0.5)
+    speck = dots(p, fibonacci_sphere(3000) + 0.03 * random_unit(3000, 42), 0.01)
+    return blend(img, [0.22, 0.14, 0.06], speck * 0.75)
 
 
 @functools.cache
@@ -233,10 +237,12 @@ def pomegranate() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=51, freq=2.5)
     img = blend(fill(H, W, [0.62, 0.05, 0.08]), [0.42, 0.02, 0.06], smoothstep(-0.1, 0.8, n))
-    img = blend(img, [0.85, 0.55, 0.35], smoothstep(0.45, 0.95, fbm(p, seed=52, freq=1.8)) * 0.7)
+    img = blend(img, [0.7, 0.3, 0.2], smoothstep(0.5, 0.95, fbm(p, seed=52, freq=1.8)) * 0.4)
     img = blend(img, [0.5, 0.2, 0.12], smoothstep(0.88, 0.97, p[..., 2]))  # towards the crown
-    speck = dots(p, fibonacci_sphere(500) + 0.03 * random_unit(500, 53), 0.02)
-    return blend(img, [0.3, 0.02, 0.04], speck * 0.6)
+    img = blend(img, [0.36, 0.02, 0.05], smoothstep(0.2, 0.8, fbm(p, seed=54, freq=12.0, octaves=3)) * 0.35)
+    speck = dots(p, fibonacci_sphere(1800) + 0.03 * random_unit(1800, 53), 0.013)
+    img = blend(img, [0.28, 0.02, 0.04], speck * 0.7)
+    return blend(img, [0.72, 0.42, 0.3], dots(p, random_unit(600, 55), 0.008) * 0.6)  # pale freckles
 
 
 @functools.cache
@@ -255,10 +261,10 @@ def mango() -> np.ndarray:
     # revolved about z then turned so z becomes the long x axis; blush on the +x side of the profile
     p = sphere_points(H, W)
     blush = smoothstep(-0.4, 0.8, p[..., 0] + 0.35 * p[..., 2] + 0.25 * fbm(p, seed=71, freq=2.0))
-    img = blend(fill(H, W, [0.45, 0.62, 0.16]), [0.98, 0.62, 0.1], smoothstep(-0.9, 0.0, p[..., 0] + 0.4 * p[..., 2]))
+    img = blend(fill(H, W, [0.42, 0.58, 0.14]), [0.92, 0.6, 0.1], smoothstep(-0.9, 0.0, p[..., 0] + 0.4 * p[..., 2]))
     img = blend(img, [0.82, 0.12, 0.12], blush)
-    speck = dots(p, fibonacci_sphere(700) + 0.02 * random_unit(700, 72), 0.012)
-    return blend(img, [0.98, 0.9, 0.5], speck * 0.8)
+    speck = dots(p, fibonacci_sphere(2000) + 0.02 * random_unit(2000, 72), 0.011)
+    return blend(img, [0.9, 0.82, 0.45], speck * 0.7)
 
 
 @functools.cache
@@ -267,7 +273,7 @@ def banana() -> np.ndarray:
     u, v = uv_grid(H, W)
     p = np.stack([np.cos(2 * np.pi * u), np.sin(2 * np.pi * u), v * 6.0], -1)
     n = fbm(p, seed=81, freq=2.0)
-    img = blend(fill(H, W, [0.98, 0.84, 0.2]), [0.9, 0.72, 0.1], smoothstep(0.0, 0.9, n) * 0.7)
+    img = blend(fill(H, W, [0.92, 0.78, 0.16]), [0.85, 0.68, 0.08], smoothstep(0.0, 0.9, n) * 0.7)
     img = blend(img, [0.62, 0.7, 0.18], smoothstep(0.2, 0.0, v) * 0.8)  # green towards the stalk
     ends = np.maximum(smoothstep(0.07, 0.015, v), smoothstep(0.94, 0.985, v))
     img = blend(img, [0.18, 0.12, 0.05], ends)
@@ -284,31 +290,39 @@ def watermelon() -> np.ndarray:
     p = sphere_points(H, W)
     u, _ = uv_grid(H, W)
     warp = 0.35 * fbm(p, seed=91, freq=3.0) + 0.15 * fbm(p, seed=92, freq=9.0)
-    stripe = np.cos(16 * 2 * np.pi * u + 2.5 * warp)
-    # rind: mid green with dark green stripes (a photo's rind averages about (60, 110, 45) sRGB)
-    img = blend(fill(H, W, [0.34, 0.55, 0.2]), [0.06, 0.24, 0.05], smoothstep(-0.2, 0.25, stripe))
-    img = blend(img, [0.85, 0.82, 0.45], smoothstep(0.55, 0.85, -p[..., 1] + 0.2 * fbm(p, seed=93, freq=2.0))
-                * 0.75)  # ground spot
-    return blend(img, [0.3, 0.35, 0.12], smoothstep(0.97, 0.995, np.abs(p[..., 2])))
+    jag = fbm(p, seed=94, freq=28.0, octaves=3)  # ragged "flame" edges of the stripes
+    stripe = np.cos(16 * 2 * np.pi * u + 2.5 * warp + 1.1 * jag)
+    # rind: pale-mid green with broad dark green stripes (a photo's rind averages about (60, 110, 45) sRGB)
+    light = blend(fill(H, W, [0.3, 0.5, 0.15]), [0.42, 0.58, 0.2], smoothstep(0.0, 0.8, fbm(p, seed=95, freq=6.0)))
+    img = blend(light, [0.05, 0.2, 0.05], smoothstep(-0.45, -0.1, stripe))
+    veins = smoothstep(0.35, 0.75, fbm(p * np.array([1.0, 1.0, 0.3]), seed=96, freq=14.0))  # mottled veins
+    img = blend(img, [0.16, 0.36, 0.1], veins * 0.6)
+    img = blend(img, [0.72, 0.7, 0.35], smoothstep(0.7, 0.92, -p[..., 1] + 0.2 * fbm(p, seed=93, freq=2.0))
+                * 0.6)  # small yellowish ground spot
+    speck = dots(p, fibonacci_sphere(2500) + 0.02 * random_unit(2500, 97), 0.012)
+    img = blend(img, [0.55, 0.66, 0.3], speck * 0.5)
+    return blend(img, [0.3, 0.3, 0.12], smoothstep(0.97, 0.995, np.abs(p[..., 2])))
 
 
 @functools.cache
 def peach() -> np.ndarray:
     p = sphere_points(H, W)
     blush = smoothstep(-0.5, 0.7, p[..., 0] + 0.3 * fbm(p, seed=101, freq=2.5))
-    img = blend(fill(H, W, [0.98, 0.72, 0.35]), [0.88, 0.28, 0.18], blush)
+    img = blend(fill(H, W, [0.9, 0.64, 0.3]), [0.84, 0.26, 0.16], blush)
     img = blend(img, [0.65, 0.12, 0.12], smoothstep(0.5, 0.95, p[..., 0] + 0.2 * fbm(p, seed=102, freq=5.0)) * 0.6)
-    speck = dots(p, fibonacci_sphere(800) + 0.02 * random_unit(800, 103), 0.012)
-    return blend(img, [0.7, 0.2, 0.12], speck * 0.5)
+    img = blend(img, [0.78, 0.3, 0.16], smoothstep(0.3, 0.8, fbm(p, seed=104, freq=14.0, octaves=3)) * 0.15)
+    speck = dots(p, fibonacci_sphere(2000) + 0.02 * random_unit(2000, 103), 0.011)
+    return blend(img, [0.62, 0.16, 0.1], speck * 0.6)
 
 
 @functools.cache
 def tomato() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=111, freq=2.5)
-    img = blend(fill(H, W, [0.86, 0.1, 0.05]), [0.7, 0.05, 0.03], smoothstep(0.0, 0.9, n) * 0.7)
-    img = blend(img, [0.95, 0.42, 0.08], smoothstep(0.55, 0.95, p[..., 2]) * 0.7)  # orange shoulders
-    return blend(img, [0.98, 0.7, 0.5], dots(p, fibonacci_sphere(300), 0.015) * 0.35)
+    img = blend(fill(H, W, [0.8, 0.08, 0.04]), [0.64, 0.04, 0.03], smoothstep(0.0, 0.9, n) * 0.7)
+    img = blend(img, [0.9, 0.36, 0.06], smoothstep(0.6, 0.95, p[..., 2]) * 0.45)  # orange shoulders
+    img = blend(img, [0.6, 0.03, 0.02], smoothstep(0.2, 0.8, fbm(p, seed=113, freq=14.0, octaves=3)) * 0.4)
+    return blend(img, [0.9, 0.58, 0.4], dots(p, fibonacci_sphere(1500) + 0.03 * random_unit(1500, 112), 0.01) * 0.55)
 
 
 @functools.cache
@@ -332,12 +346,12 @@ def coconut() -> np.ndarray:
 def duck() -> np.ndarray:
     """Rubber duck body (sphere UVs, +x forward): yellow with moulded wings and a warmer belly."""
     p = sphere_points(H, W)
-    img = blend(fill(H, W, [0.99, 0.83, 0.1]), [0.95, 0.68, 0.05], smoothstep(-0.3, -0.8, p[..., 2]))
+    img = blend(fill(H, W, [0.94, 0.76, 0.06]), [0.9, 0.62, 0.04], smoothstep(-0.3, -0.8, p[..., 2]))
     ell = ((p[..., 0] + 0.12) / 0.5) ** 2 + ((p[..., 2] - 0.1) / 0.38) ** 2
     side = np.abs(p[..., 1]) > 0.45
-    img = blend(img, [0.96, 0.7, 0.06], ((ell < 1.0) & (ell > 0.8) & side).astype(float))
+    img = blend(img, [0.88, 0.6, 0.04], ((ell < 1.0) & (ell > 0.8) & side).astype(float))
     feathers = side & (ell < 0.8) & (np.abs(np.sin(9 * (p[..., 0] + 0.5 * p[..., 2]))) < 0.12) & (p[..., 0] < 0.1)
-    return blend(img, [0.96, 0.72, 0.06], feathers.astype(float))
+    return blend(img, [0.88, 0.62, 0.04], feathers.astype(float))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -347,7 +361,7 @@ def duck() -> np.ndarray:
 @functools.cache
 def baseball() -> np.ndarray:
     p = sphere_points(H, W)
-    img = blend(fill(H, W, [0.95, 0.93, 0.86]), [0.84, 0.82, 0.74], smoothstep(0.2, 0.9, fbm(p, seed=141, freq=3.0)))
+    img = blend(fill(H, W, [0.8, 0.78, 0.71]), [0.7, 0.68, 0.6], smoothstep(0.2, 0.9, fbm(p, seed=141, freq=3.0)))
     d, s = curve_frame(p, seam_curve(0.75))
     img = blend(img, [0.7, 0.68, 0.6], 1 - smoothstep(0.006, 0.014, np.abs(d)))  # seam groove
     spacing = 2 * np.pi * 1.0 * 1.0 / 54  # ~108 stitches per ball, half per side period
@@ -361,9 +375,9 @@ def baseball() -> np.ndarray:
 def tennis_ball() -> np.ndarray:
     p = sphere_points(H, W)
     n = fbm(p, seed=151, freq=6.0)
-    img = blend(fill(H, W, [0.82, 0.92, 0.16]), [0.7, 0.82, 0.1], smoothstep(-0.3, 0.9, n) * 0.8)
+    img = blend(fill(H, W, [0.78, 0.88, 0.16]), [0.66, 0.78, 0.1], smoothstep(-0.3, 0.9, n) * 0.8)
     d, _ = curve_frame(p, seam_curve(0.68))
-    return blend(img, [0.96, 0.96, 0.9], 1 - smoothstep(0.035, 0.05, np.abs(d)))
+    return blend(img, [0.88, 0.88, 0.82], 1 - smoothstep(0.035, 0.05, np.abs(d)))
 
 
 @functools.cache
@@ -371,7 +385,7 @@ def cricket_ball() -> np.ndarray:
     h, w = 256, 512
     p = sphere_points(h, w)
     u, _ = uv_grid(h, w)
-    img = blend(fill(h, w, [0.62, 0.05, 0.06]), [0.42, 0.03, 0.04], smoothstep(0.1, 0.9, fbm(p, seed=161, freq=3.0)))
+    img = blend(fill(h, w, [0.52, 0.04, 0.05]), [0.36, 0.02, 0.03], smoothstep(0.1, 0.9, fbm(p, seed=161, freq=3.0)))
     z = p[..., 2]
     img = blend(img, [0.5, 0.04, 0.04], (np.abs(z) < 0.15).astype(float))  # raised seam band
     img = blend(img, [0.3, 0.02, 0.02], (np.abs(z) < 0.012).astype(float))  # central groove
@@ -379,7 +393,7 @@ def cricket_ball() -> np.ndarray:
     dash = np.abs(phase - np.round(phase)) < 0.32
     for offset in (0.035, 0.08, 0.125):
         for sign in (-1, 1):
-            img = blend(img, [0.96, 0.93, 0.84], ((np.abs(z - sign * offset) < 0.014) & dash).astype(float))
+            img = blend(img, [0.88, 0.85, 0.76], ((np.abs(z - sign * offset) < 0.014) & dash).astype(float))
     quarter = (np.abs(p[..., 0]) < 0.012) & (np.abs(z) > 0.2)  # quarter seams
     img = blend(img, [0.82, 0.72, 0.6], (quarter & (np.abs(np.sin(z * 90)) > 0.3)).astype(float))
     logo = np.array([[0.0, 0.82, 0.55]])
@@ -403,7 +417,7 @@ def rugby_ball() -> np.ndarray:
     """Revolved about z (later the long x axis); four panels meet at the tips."""
     p = sphere_points(H, W)
     u, v = uv_grid(H, W)
-    img = blend(fill(H, W, [0.93, 0.92, 0.88]), [0.84, 0.83, 0.78], smoothstep(0.3, 0.9, fbm(p, seed=181, freq=4.0)))
+    img = blend(fill(H, W, [0.86, 0.85, 0.8]), [0.76, 0.75, 0.7], smoothstep(0.3, 0.9, fbm(p, seed=181, freq=4.0)))
     panel = (4 * u) % 1.0
     img = blend(img, [0.12, 0.16, 0.42], ((np.abs(v - 0.28) < 0.045) | (np.abs(v - 0.72) < 0.045)).astype(float))
     img = blend(img, [0.85, 0.12, 0.12], ((np.abs(v - 0.35) < 0.015) | (np.abs(v - 0.65) < 0.015)).astype(float))
@@ -411,9 +425,9 @@ def rugby_ball() -> np.ndarray:
     img = blend(img, [0.35, 0.35, 0.33], 1 - smoothstep(0.015, 0.04, seam))
     lace = (u > 0.235) & (u < 0.265) & (np.abs(v - 0.5) < 0.12) & (((v * 90) % 1.0) < 0.5)
     img = blend(img, [1.0, 1.0, 1.0], lace.astype(float))
-    mask = text_mask("RUGBY", 4)
+    mask = text_mask("RUGBY", H // 32)
     stamp(img, mask, (int(H * 0.5), int(W * 0.625)), [0.12, 0.16, 0.42])
-    stamp(img, text_mask("PRO", 4), (int(H * 0.5), int(W * 0.875)), [0.85, 0.12, 0.12])
+    stamp(img, text_mask("PRO", H // 32), (int(H * 0.5), int(W * 0.875)), [0.85, 0.12, 0.12])
     return img
 
 
@@ -436,7 +450,7 @@ def energy_can() -> np.ndarray:
         r = np.hypot(du, dv)
         img = blend(img, [0.98, 0.8, 0.1], (r < 0.22).astype(float))
         img = blend(img, [0.86, 0.08, 0.1], (r < 0.17).astype(float))
-        stamp(img, text_mask("VOLT", 7), (int(h * (1 - 0.8)), int(w * centre_u)), [0.98, 0.8, 0.1])
+        stamp(img, text_mask("VOLT", 4), (int(h * (1 - 0.8)), int(w * centre_u)), [0.98, 0.8, 0.1])
         stamp(img, text_mask("ENERGY", 3), (int(h * (1 - 0.34)), int(w * centre_u)), [0.06, 0.14, 0.55])
     return img
 
@@ -451,7 +465,7 @@ def soda_can() -> np.ndarray:
     img = blend(img, [0.2, 0.2, 0.22], (np.abs(v - wave - 0.06) < 0.01).astype(float))
     img = blend(img, [0.98, 0.97, 0.95], ((v > 0.9) | (v < 0.08)).astype(float))
     for centre_u in (0.12, 0.62):
-        stamp(img, text_mask("FIZZ", 9), (int(h * (1 - 0.72)), int(w * centre_u)), [0.98, 0.97, 0.95])
+        stamp(img, text_mask("FIZZ", 5), (int(h * (1 - 0.72)), int(w * centre_u)), [0.98, 0.97, 0.95])
         stamp(img, text_mask("COLA", 5), (int(h * (1 - 0.27)), int(w * centre_u)), [0.98, 0.85, 0.2])
     return img
 
@@ -460,7 +474,7 @@ def soda_can() -> np.ndarray:
 def food_can_label() -> np.ndarray:
     h, w = 256, 256
     u, v = uv_grid(h, w)
-    img = fill(h, w, [0.95, 0.9, 0.76])
+    img = fill(h, w, [0.9, 0.85, 0.7])
     img = blend(img, [0.1, 0.42, 0.18], ((v > 0.86) | (v < 0.14)).astype(float))
     img = blend(img, [0.85, 0.68, 0.2], ((np.abs(v - 0.86) < 0.012) | (np.abs(v - 0.14) < 0.012)).astype(float))
     for centre_u in (0.2, 0.7):
@@ -470,7 +484,7 @@ def food_can_label() -> np.ndarray:
         img = blend(img, [0.82, 0.1, 0.06], (r < 0.16).astype(float))  # a tomato on the label
         img = blend(img, [0.95, 0.45, 0.35], (np.hypot(du + 0.05, dv - 0.06) < 0.04).astype(float) * 0.7)
         img = blend(img, [0.15, 0.5, 0.15], (np.hypot(du, dv - 0.16) < 0.035).astype(float))
-        stamp(img, text_mask("TOMATO", 6), (int(h * (1 - 0.73)), int(w * centre_u)), [0.7, 0.08, 0.05])
+        stamp(img, text_mask("TOMATO", 3), (int(h * (1 - 0.73)), int(w * centre_u)), [0.7, 0.08, 0.05])
         stamp(img, text_mask("SOUP", 4), (int(h * (1 - 0.22)), int(w * centre_u)), [0.15, 0.15, 0.15])
     bars = (u > 0.42) & (u < 0.5) & (v > 0.25) & (v < 0.6) & (((v * 60) % 1.0) < 0.45)  # barcode side
     img = blend(img, [0.1, 0.1, 0.1], bars.astype(float) * ((u * 300 % 1.0) < 0.6))
@@ -479,15 +493,15 @@ def food_can_label() -> np.ndarray:
 
 @functools.cache
 def bottle_label() -> np.ndarray:
-    h, w = 128, 256
+    h, w = 256, 512
     u, v = uv_grid(h, w)
     img = fill(h, w, [0.1, 0.45, 0.85])
     wave = 0.45 + 0.1 * np.sin(2 * np.pi * 3 * u)
-    img = blend(img, [0.95, 0.98, 1.0], (v < wave).astype(float))
+    img = blend(img, [0.88, 0.92, 0.95], (v < wave).astype(float))
     img = blend(img, [0.35, 0.75, 0.95], (np.abs(v - wave) < 0.04).astype(float))
     for centre_u in (0.25, 0.75):
-        stamp(img, text_mask("AQUA", 9), (int(h * (1 - 0.72)), int(w * centre_u)), [1.0, 1.0, 1.0])
-        stamp(img, text_mask("SPRING", 3), (int(h * (1 - 0.25)), int(w * centre_u)), [0.1, 0.3, 0.7])
+        stamp(img, text_mask("AQUA", 8), (int(h * (1 - 0.72)), int(w * centre_u)), [1.0, 1.0, 1.0])
+        stamp(img, text_mask("SPRING", 5), (int(h * (1 - 0.25)), int(w * centre_u)), [0.1, 0.3, 0.7])
     return img
 
 
@@ -516,7 +530,7 @@ def _atlas_tiles(tile: int):
 @functools.cache
 def die() -> np.ndarray:
     tile = 96
-    img = fill(2 * tile, 3 * tile, [0.96, 0.95, 0.92])
+    img = fill(2 * tile, 3 * tile, [0.82, 0.81, 0.78])
     for face, rs, cs, tu, tv in _atlas_tiles(tile):
         n = DIE_PIPS[face]
         pip = np.zeros_like(tu)
@@ -528,7 +542,7 @@ def die() -> np.ndarray:
     return img
 
 
-CUBE_COLOURS = {"+z": [0.97, 0.97, 0.97], "-z": [1.0, 0.84, 0.0], "+x": [0.8, 0.05, 0.08],
+CUBE_COLOURS = {"+z": [0.88, 0.88, 0.86], "-z": [0.95, 0.8, 0.0], "+x": [0.8, 0.05, 0.08],
                 "-x": [1.0, 0.42, 0.0], "+y": [0.0, 0.3, 0.8], "-y": [0.0, 0.62, 0.28]}
 
 
@@ -580,7 +594,8 @@ def _butterfly(shape_h: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.cache
 def butterfly_mural(h: int = 512, w: int = 1536) -> np.ndarray:
-    """Pale sky wall with leafy vines and ~60 butterflies of six palettes, varied size and tilt."""
+    """Pale sky wall with leafy vines and 46 butterflies of six palettes, varied size and tilt: two rows of
+    large ones low on the wall (0.35-1.6 m up a 2.8 m wall), smaller ones anywhere."""
     from scipy import ndimage
 
     u, v = uv_grid(h, w)
@@ -598,8 +613,12 @@ def butterfly_mural(h: int = 512, w: int = 1536) -> np.ndarray:
         leaves = (np.abs(uu - path - 0.008 * np.sign(np.sin(vv * 60))) < 0.006) & (np.sin(vv * 60 + k) > 0.6)
         band[leaves] = [0.42, 0.7, 0.4]
     rng = np.random.default_rng(192)
-    for k in range(60):
-        size = int(rng.integers(40, 96))
+    # two staggered rows of large butterflies at ~0.35-1.6 m up a 2.8 m wall (where the benchmark cameras
+    # look), then smaller ones anywhere
+    n_row = 14
+    for k in range(2 * n_row + 18):
+        low = k < 2 * n_row
+        size = int(rng.integers(64, 104)) if low else int(rng.integers(36, 72))
         col, alpha = _butterfly(size, 300 + k)
         angle = rng.uniform(-0.5, 0.5)
         # rotate the sprite by nearest-neighbour lookup
@@ -607,7 +626,14 @@ def butterfly_mural(h: int = 512, w: int = 1536) -> np.ndarray:
         sx = np.clip(np.round(np.cos(angle) * xx + np.sin(angle) * yy + (size - 1) / 2), 0, size - 1).astype(int)
         sy = np.clip(np.round(-np.sin(angle) * xx + np.cos(angle) * yy + (size - 1) / 2), 0, size - 1).astype(int)
         col, alpha = col[sy, sx], alpha[sy, sx]
-        r0, c0 = int(rng.integers(0, h - size)), int(rng.integers(0, w - size))
+        if low:
+            row, i = divmod(k, n_row)
+            centre_r = h * (0.5 if row == 0 else 0.76) + rng.uniform(-0.05, 0.05) * h
+            centre_c = (i + 0.5 * row + rng.uniform(0.2, 0.8)) * w / n_row
+            r0 = int(np.clip(centre_r - size / 2, 0, h - size))
+            c0 = int(np.clip(centre_c - size / 2, 0, w - size))
+        else:
+            r0, c0 = int(rng.integers(0, h - size)), int(rng.integers(0, w - size))
         region = img[r0:r0 + size, c0:c0 + size]
         img[r0:r0 + size, c0:c0 + size] = region * (1 - alpha[..., None]) + col * alpha[..., None]
     return img
@@ -648,3 +674,28 @@ def rug_pattern(seed: int, colours: tuple[tuple[float, float, float], ...], h: i
         img = blend(img, border, ((dd < 0.1) & (dd > 0.06)).astype(float))
     p = np.stack([u * 20, v * 14, np.zeros_like(u)], -1)
     return img * (0.93 + 0.07 * fbm(p, seed=seed, freq=1.0, octaves=2))[..., None]
+
+
+@functools.cache
+def pinboard(seed: int, h: int = 192, w: int = 288) -> np.ndarray:
+    """A cork board with pinned notes, photos and postcards (scene decor)."""
+    rng = np.random.default_rng(seed)
+    grain = rng.uniform(-0.06, 0.06, (h, w))
+    img = fill(h, w, [0.66, 0.48, 0.3]) * (1 + grain[..., None])
+    colours = ([0.98, 0.9, 0.35], [0.95, 0.6, 0.65], [0.55, 0.8, 0.9], [0.97, 0.97, 0.95], [0.6, 0.85, 0.55])
+    for k in range(14):
+        ph, pw = int(rng.integers(h // 6, h // 3)), int(rng.integers(w // 9, w // 4))
+        r0, c0 = int(rng.integers(4, h - ph - 4)), int(rng.integers(4, w - pw - 4))
+        if k % 3 == 0:  # a photo: white border round a two-tone scene
+            img[r0:r0 + ph, c0:c0 + pw] = [0.96, 0.96, 0.94]
+            sky, land = rng.uniform(0.2, 0.9, 3), rng.uniform(0.1, 0.6, 3)
+            m = ph // 2
+            img[r0 + 3:r0 + m, c0 + 3:c0 + pw - 3] = sky
+            img[r0 + m:r0 + ph - 6, c0 + 3:c0 + pw - 3] = land
+        else:  # a note with a few lines of writing
+            img[r0:r0 + ph, c0:c0 + pw] = colours[k % len(colours)]
+            for line in range(r0 + 5, r0 + ph - 3, 5):
+                img[line, c0 + 3:c0 + pw - int(rng.integers(3, max(4, pw // 2)))] = [0.25, 0.25, 0.3]
+        pin = colours[int(rng.integers(len(colours)))] if k % 2 else [0.85, 0.15, 0.12]
+        img[max(r0 - 1, 0):r0 + 3, c0 + pw // 2 - 2:c0 + pw // 2 + 2] = pin
+    return np.clip(img, 0.0, 1.0)

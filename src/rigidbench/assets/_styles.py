@@ -27,11 +27,15 @@ class Style:
     # world yaw of the HDRI; its sun then shines from azimuth (HDRI sun azimuth - rotation): e.g. the
     # sunrise/sunset suns sit at -36 deg in their panoramas, so -216 deg makes them shine from +x toward -x
     hdri_rotation_deg: float = 0.0
+    # a physical daytime sky instead of the HDRI: (sun azimuth deg, sun elevation deg, strength)
+    sky: tuple[float, float, float] | None = None
     sun: tuple[float, float, float] | None = None  # (azimuth the light comes from, elevation deg, W/m^2)
     sun_colour: tuple[float, float, float] = (1.0, 0.95, 0.88)
     lamp_colour: tuple[float, float, float] = (1.0, 0.88, 0.75)
     fill_w: float = 500.0  # big soft panel over the room (the missing ceiling's lights)
-    support_light_w: float = 120.0  # per 1.5 m^2 of support, from 1.5 m above it
+    # per 1.5 m^2 of support, from 1.5 m above it; it falls straight on the support, so a pale top
+    # (marble, white oak) clips above ~10 W with Standard view: keep it low and light with the sun
+    support_light_w: float = 120.0
     wall_height_m: float = 2.8
     margin_m: float = 4.0
     min_half_m: float = 4.5
@@ -46,6 +50,7 @@ class Style:
     chair: str = "wood"
     chairs: bool = True
     end_chairs: bool = False
+    chair_gap_m: float = 0.1  # seat centre this far beyond the table edge
     stools: bool = True
     round_stools: bool = True
     door_w: float = 0.6
@@ -218,11 +223,19 @@ def _luxury_kitchen(kit) -> None:
 
 
 def _white_kitchen(kit) -> None:
-    _kitchen_wall(kit, "counter", 1.5, uppers=False, shelves=False, hood=False, columns=True)
+    _kitchen_wall(kit, "counter", 1.55, uppers=False, shelves=False, hood=False, columns=True)
     _pendants(kit, "counter", "cone", 2, 1.15, 0.16)
     t = _t_of(kit, "back", 0.0)
-    kit.on_wall("back", t, "shelf", F.open_shelves(1.6, [1.7], 0.24, 0.035) +
-                F.shelf_items(kit.rng, 1.5, 1.72, 0.24, ("bowl", "vase", "jar")), check=False)
+    back = kit.walls[kit.sides["back"]]
+    # the space over the counter stays clear: only flat things on its wall (a rail, small prints)
+    kit.on_wall("back", t - 0.45 / back.length_m, "rail", F.combine(F.utensil_rail(kit.rng, 1.1), (0, 0, 1.38)),
+                check=False)
+    _art(kit, "back", t + 0.75 / back.length_m, 1.25, 0.32, 0.42, "art1")
+    _art(kit, "back", t + 1.1 / back.length_m, 1.3, 0.26, 0.34, "art2")
+    for dx in (-3.35, 3.35):  # open shelves with crockery beside the tall units
+        kit.on_wall("back", t + dx / back.length_m, "shelf", F.open_shelves(0.9, [1.05, 1.45], 0.26, 0.035) +
+                    F.shelf_items(kit.rng, 0.8, 1.07, 0.26, ("bowl", "jar", "vase")) +
+                    F.shelf_items(kit.rng, 0.8, 1.47, 0.26, ("books", "bowl", "jar")), check=False)
     kit.on_wall("left", 0.55, "table", F.table_base(0.9, 0.9, 0.72, "pedestal") +
                 [(F.cyl(0.45, 0.72, 0.75, segments=32), "top")], offset_m=1.6)
     p = kit.walls[kit.sides["left"]].point(0.55, 1.6)
@@ -231,8 +244,15 @@ def _white_kitchen(kit) -> None:
         kit.item("chair", F.chair("metal"), (p[0] + 0.65 * np.cos(r), p[1] + 0.65 * np.sin(r)), 0.0, a + 90)
     _plant(kit, "left", 0.15, "tall", 1.6, 0.2)
     _plant(kit, "front", 0.85, "bush", 0.8)
-    _art(kit, "right", 0.45, 1.55, 0.9, 1.2, "art0")
-    kit.on_wall("front", 0.4, "sideboard", F.cabinet_run(1.8, 0.45, 0.85, door_w=0.6, handle="edge"), offset_m=0.23)
+    _art(kit, "right", 0.45, 1.4, 0.9, 1.1, "art0")
+    kit.on_wall("front", 0.4, "sideboard", F.cabinet_run(1.8, 0.45, 0.85, door_w=0.6, handle="edge") +
+                F.combine(F.shelf_items(kit.rng, 1.6, 0.85, 0.0, ("vase", "bowl", "books", "jar")), (0, 0, 0)),
+                offset_m=0.23)
+    _art(kit, "front", 0.4, 1.45, 1.0, 0.7, "art3")
+    _plant(kit, "front", 0.12, "palm", 1.3, 0.2)
+    _lamp(kit, "right", 0.15, 0.35, 30.0)
+    kit.on_wall("left", 0.55, "runner", [(F.slab_uv01((1.8, 1.2, 0.004), (0, 0, 0.002)), "rug_deco")],
+                offset_m=1.6, check=False)
 
 
 def _japandi(kit) -> None:
@@ -244,7 +264,9 @@ def _japandi(kit) -> None:
     kit.on_wall("back", 0.5, "vase", F.combine(F.vase_with_stems(rng, 0.45), (-0.6, 0.0, 0.6)) +
                 F.combine(F.shelf_items(rng, 0.8, 0.6, 0.0, ("bowl", "vase")), (0.5, 0.0, 0.0)), offset_m=0.21,
                 check=False)
-    _art(kit, "back", 0.5, 1.55, 1.4, 0.9, "art0")
+    _art(kit, "back", 0.5, 1.4, 1.4, 0.8, "art0")
+    _art(kit, "left", 0.62, 1.25, 0.7, 0.5, "art1")
+    _art(kit, "left", 0.8, 1.25, 0.5, 0.5, "art2")
     kit.on_wall("left", 0.5, "bench", [(F.B((1.6, 0.4, 0.05), (0, 0, 0.43)), "wood")] +
                 F.table_base(1.6, 0.4, 0.41, "legs", 0.05) + F.combine(F.floor_cushion(0.4), (0.4, 0.0, 0.45)),
                 offset_m=0.25)
@@ -253,6 +275,19 @@ def _japandi(kit) -> None:
     kit.on_wall("front", 0.35, "bookcase", F.bookcase(rng, 1.2, 0.3, 1.1, 2), offset_m=0.16)
     kit.on_wall("front", 0.35, "bonsai", F.combine(F.plant(rng, 0.14, 0.1, 0.5, "bush"), (0.0, 0.0, 1.1)),
                 offset_m=0.16, check=False)
+    kit.on_wall("front", 0.68, "tansu", F.cabinet_run(1.6, 0.4, 0.75, door_w=0.4, handle="none", drawers=True) +
+                F.combine(F.table_lamp(0.45), (0.55, 0.0, 0.75)) +
+                F.combine(F.shelf_items(rng, 0.8, 0.75, 0.0, ("bowl", "vase", "books")), (-0.3, 0.0, 0.0)),
+                offset_m=0.2)
+    _art(kit, "front", 0.68, 1.45, 0.9, 0.6, "art3")
+    for t in (0.12, 0.88):
+        _plant(kit, "right", t, "tall" if t < 0.5 else "palm", 1.4, 0.2)
+    kit.on_wall("right", 0.5, "floor_cushions", F.combine(F.floor_cushion(0.55), (-0.5, 0.0, 0.0)) +
+                F.combine(F.floor_cushion(0.55), (0.5, 0.0, 0.0)), offset_m=0.6)
+    lamp = kit.on_wall("left", 0.92, "floor_lamp", F.floor_lamp(), offset_m=0.35)
+    if lamp is not None:
+        kit.light("POINT", (lamp.location.x, lamp.location.y, kit.scene.floor_z_m + 1.45), 30.0, kit.style.lamp_colour,
+                  size_m=0.1, name="lamp_glow")
 
 
 def _dining_set(kit) -> None:
@@ -282,10 +317,11 @@ def _modular_flat(kit) -> None:
     rng = kit.rng
     t = _t_of(kit, "back", 0.0)
     back = kit.walls[kit.sides["back"]]
-    kit.on_wall("back", t, "wall_shelf", F.open_shelves(1.5, [1.55], 0.22, 0.03) +
-                F.shelf_items(rng, 1.4, 1.565, 0.22, ("books", "vase", "books")), check=False)
-    for k, dx in enumerate((-0.45, 0.45)):
-        _art(kit, "back", t + dx / back.length_m, 2.05, 0.5, 0.7, f"art{k}")
+    # the space over the desk stays clear: flat prints and a pinboard there, shelves beside it
+    kit.on_wall("back", t - 0.35 / back.length_m, "pinboard", F.picture(0.8, 0.55, 0.025, "cork"), z=1.22,
+                check=False)
+    for k, (dx, z, w, h) in enumerate(((0.35, 1.3, 0.36, 0.48), (0.72, 1.18, 0.3, 0.3), (0.45, 1.85, 0.5, 0.4))):
+        _art(kit, "back", t + dx / back.length_m, z, w, h, f"art{k}")
     kit.on_wall("back", t + 2.1 / back.length_m, "cubes", F.cube_shelf(rng, 3, 4), offset_m=0.18)
     kit.on_wall("back", t - 2.1 / back.length_m, "cubes", F.cube_shelf(rng, 3, 2), offset_m=0.18)
     kit.on_wall("left", 0.5, "sofa_bed", F.sofa(2.0, 0.95, 2), offset_m=0.5)
@@ -297,6 +333,11 @@ def _modular_flat(kit) -> None:
     _plant(kit, "front", 0.5, "bush", 1.0)
     _lamp(kit, "left", 0.15, 0.35, 40.0)
     _rug(kit, "rug", (2.0, 1.4), kit.walls[kit.sides["left"]].point(0.5, 1.6), "rug_deco", rot=90.0)
+    kit.on_wall("front", 0.75, "bookcase", F.bookcase(rng, 1.2, 0.32, 1.5, 3), offset_m=0.17)
+    _art(kit, "left", 0.5, 1.45, 1.1, 0.6, "art3")
+    kit.on_wall("right", 0.2, "side_table", F.table_base(0.45, 0.45, 0.5, "legs", 0.035) +
+                [(F.B((0.45, 0.45, 0.03), (0, 0, 0.515)), "top")] + F.combine(F.table_lamp(0.4), (0, 0, 0.53)),
+                offset_m=0.3)
 
 
 def _coastal(kit) -> None:
@@ -342,8 +383,13 @@ def _gazebo(kit) -> None:
     kit.item("steps", [(F.B((1.6, 0.35, 0.12), (0, y0 - 0.18, fz - 0.06 - 0.12 * k)), "deck") for k in range(2)],
              check=False)
     ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
-    sand = polygon_prism(np.stack([60 * np.cos(ang), 60 * np.sin(ang)], 1), fz - 1.0, fz - 0.4)
-    kit.item("sand", [(sand, "sand")], check=False)
+    # a beach 9-15 m around the gazebo (nearest the sea on the +y side), then open sea to the horizon
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    r = 12.0 + 1.2 * np.sin(3 * ang + 0.7) + 0.6 * np.sin(7 * ang + 2.0)
+    beach = np.stack([cx + r * np.cos(ang), cy - 3.5 + r * np.sin(ang)], 1)
+    kit.item("sand", [(polygon_prism(beach, fz - 1.0, fz - 0.4), "sand")], check=False)
+    shore = np.stack([cx + (r + 1.6) * np.cos(ang), cy - 3.5 + (r + 1.6) * np.sin(ang)], 1)
+    kit.item("shore", [(polygon_prism(shore, fz - 1.0, fz - 0.53), "wet_sand")], check=False)
     sea = grid_plane(np.array([-3000.0, 3000.0]), np.array([-3000.0, 3000.0]), np.ones((1, 1), bool), fz - 0.55)
     kit.item("sea", [(sea, "sea")], check=False)
     posts = []
@@ -360,9 +406,9 @@ def _gazebo(kit) -> None:
         kit.item("lantern", [(F.cyl(0.07, -0.22, 0.0, segments=10), "lamp_metal"),
                              (F.cyl(0.055, -0.2, -0.03, segments=10), "shade"),
                              (F.cyl(0.003, 0.0, 0.3, segments=4), "metal")], (px, py), fz + 2.1, check=False)
-    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-    for (x, y, h, lean) in ((-7.5, 6.0, 5.5, (0.8, -0.3)), (8.0, 4.0, 6.2, (-0.6, 0.5)), (-9.0, -6.0, 5.0, (0.5, 0.6)),
-                            (6.5, -8.5, 5.8, (-0.4, -0.3))):
+    for (x, y, h, lean) in ((-7.0, 3.5, 5.5, (0.8, -0.3)), (7.5, 2.5, 6.2, (-0.6, 0.5)),
+                            (-8.5, -6.0, 5.0, (0.5, 0.6)), (6.5, -8.5, 5.8, (-0.4, -0.3)),
+                            (-3.5, 5.0, 4.6, (0.3, 0.5)), (3.0, -11.0, 5.2, (0.2, 0.6))):
         kit.item("palm", F.palm_tree(rng, h, lean), (cx + x, cy + y), fz - 0.4, check=False)
     for x in (-5.2, -3.9):
         kit.item("lounger", F.sun_lounger(), (cx + x, y0 - 2.3), fz - 0.4, 80.0, check=False)
@@ -443,7 +489,7 @@ def _rug_mat(seed: int, colours) -> Factory:
 
 STYLES: dict[str, Style] = {
     "hallway_interior": Style(
-        hdri="interior.exr", hdri_strength=0.6, margin_m=3.6, fill_w=450.0, support_light_w=90.0,
+        hdri="interior.exr", hdri_strength=0.48, margin_m=3.6, fill_w=300.0, support_light_w=30.0,
         windows=(("front", 0.8, 1.0, 0.9, 2.3, (2, 2)),),
         materials={
             "wall": _m(M.painted, (0.56, 0.63, 0.55), 0.85),
@@ -464,7 +510,7 @@ STYLES: dict[str, Style] = {
         },
         decorate=_hallway),
     "modern_loft": Style(
-        hdri="city.exr", hdri_strength=0.7, hdri_rotation_deg=-256.0, fill_w=350.0, support_light_w=80.0,
+        hdri="city.exr", hdri_strength=0.4, hdri_rotation_deg=-256.0, fill_w=180.0, support_light_w=20.0,
         windows=(("left", 0.5, 2.6, 0.45, 2.55, (4, 3)), ("right", 0.35, 2.6, 0.45, 2.55, (4, 3)),
                  ("front", 0.2, 2.0, 0.45, 2.55, (3, 3))),
         wall_roles={"back": "brick"},
@@ -488,12 +534,12 @@ STYLES: dict[str, Style] = {
         art_palette=((0.9, 0.88, 0.82), (0.1, 0.1, 0.1), (0.8, 0.25, 0.15), (0.25, 0.4, 0.6), (0.95, 0.75, 0.2)),
         decorate=_loft),
     "modern_luxury_kitchen": Style(
-        hdri="courtyard.exr", hdri_strength=0.7, fill_w=350.0, support_light_w=55.0, door_w=0.55,
+        hdri="courtyard.exr", hdri_strength=0.4, fill_w=150.0, support_light_w=7.0, door_w=0.55,
         windows=(("right", 0.35, 1.6, 0.9, 2.5, (2, 2)), ("right", 0.7, 1.6, 0.9, 2.5, (2, 2)),
                  ("front", 0.3, 2.4, 0.5, 2.5, (3, 2))),
         materials={
-            "top": _m(M.marble, (0.93, 0.92, 0.9), 0.1),
-            "backsplash": _m(M.marble, (0.93, 0.92, 0.9), 0.12),
+            "top": _m(M.marble, (0.88, 0.87, 0.85), 0.1),
+            "backsplash": _m(M.marble, (0.8, 0.79, 0.77), 0.12),
             "cabinet": _m(M.painted, (0.08, 0.12, 0.22), 0.45),
             "cabinet_front": _m(M.painted, (0.09, 0.13, 0.24), 0.35),
             "handle": _m(M.metal, (0.85, 0.65, 0.32), 0.2),
@@ -510,18 +556,24 @@ STYLES: dict[str, Style] = {
         art_palette=((0.95, 0.94, 0.9), (0.1, 0.15, 0.3), (0.8, 0.62, 0.3), (0.5, 0.55, 0.6), (0.2, 0.2, 0.2)),
         decorate=_luxury_kitchen),
     "minimal_white_kitchen": Style(
-        hdri="studio.exr", hdri_strength=0.6, fill_w=260.0, support_light_w=35.0, handle="edge", door_w=0.7,
+        hdri="studio.exr", hdri_strength=0.2, fill_w=40.0, support_light_w=4.0, handle="edge", door_w=0.7,
+        sun=(180.0, 38.0, 1.0), margin_m=3.7, min_half_m=4.1,
         windows=(("left", 0.5, 2.2, 0.8, 2.5, (2, 1)), ("right", 0.75, 1.4, 0.9, 2.4, (1, 1))),
         materials={
-            "top": _m(M.marble, (0.96, 0.96, 0.95), 0.15, vein=(0.8, 0.8, 0.8)),
-            "backsplash": _m(M.tiles, (0.96, 0.96, 0.95), (0.55, 0.56, 0.56), (0.2, 0.067), 0.5, 0.06, 0.03, 0.0025),
-            "cabinet": _m(M.painted, (0.95, 0.95, 0.94), 0.35),
-            "cabinet_front": _m(M.painted, (0.96, 0.96, 0.95), 0.3),
+            "top": _m(M.marble, (0.9, 0.9, 0.89), 0.15, vein=(0.62, 0.62, 0.62)),
+            "backsplash": _m(M.tiles, (0.5, 0.6, 0.58), (0.86, 0.86, 0.84), (0.2, 0.067), 0.5, 0.1, 0.03, 0.0025),
+            "cabinet": _m(M.painted, (0.86, 0.86, 0.85), 0.35),
+            "cabinet_front": _m(M.painted, (0.88, 0.88, 0.87), 0.3),
             "plinth": _m(M.painted, (0.85, 0.85, 0.84), 0.5),
             "floor": _m(M.wood, (0.78, 0.64, 0.46), 0.5, planks=True, plank_m=(2.0, 0.22)),
             "lamp_metal": _m(M.metal, (0.03, 0.03, 0.03), 0.45),
-            "wall": _m(M.painted, (0.97, 0.97, 0.96), 0.8),
-            "appliance": _m(M.painted, (0.95, 0.95, 0.94), 0.3),
+            "wall": _m(M.painted, (0.8, 0.78, 0.73), 0.8, variation=0.07),
+            "appliance": _m(M.metal, (0.72, 0.72, 0.72), 0.3),
+            "accent0": _m(M.painted, (0.2, 0.35, 0.32), 0.5),
+            "accent1": _m(M.painted, (0.75, 0.45, 0.3), 0.5),
+            "accent2": _m(M.painted, (0.85, 0.8, 0.6), 0.5),
+            "ceramic": _m(M.painted, (0.25, 0.38, 0.36), 0.4, coat=0.4),
+            "rug_deco": _rug_mat(41, [(0.78, 0.74, 0.66), (0.25, 0.38, 0.36), (0.7, 0.45, 0.3), (0.2, 0.2, 0.2)]),
             "handle": _m(M.metal, (0.8, 0.8, 0.8), 0.3),
             "wood": _m(M.wood, (0.78, 0.64, 0.46), 0.5),
             "chair_seat": _m(M.painted, (0.95, 0.95, 0.95), 0.4),
@@ -531,13 +583,17 @@ STYLES: dict[str, Style] = {
         art_palette=((0.97, 0.97, 0.96), (0.1, 0.1, 0.1), (0.85, 0.85, 0.85), (0.75, 0.65, 0.5), (0.3, 0.3, 0.3)),
         decorate=_white_kitchen),
     "modern_japandi_dining": Style(
-        hdri="forest.exr", hdri_strength=0.65, hdri_rotation_deg=-25.7, fill_w=300.0, support_light_w=50.0,
-        chair="japandi",
+        hdri="forest.exr", hdri_strength=0.3, hdri_rotation_deg=-25.7, fill_w=60.0, support_light_w=8.0,
+        sun=(10.0, 35.0, 1.0), chair="japandi", end_chairs=True, chair_gap_m=0.22, margin_m=3.7, min_half_m=4.1,
         windows=(("right", 0.5, 3.2, 0.3, 2.5, (6, 4)), ("left", 0.25, 1.4, 0.8, 2.3, (1, 2))),
         table_base={"table": "trestle"},
         materials={
-            "wall": _m(M.painted, (0.86, 0.81, 0.73), 0.9, variation=0.06),
-            "floor": _m(M.wood, (0.8, 0.68, 0.5), 0.5, planks=True, plank_m=(1.8, 0.2)),
+            "wall": _m(M.painted, (0.78, 0.73, 0.65), 0.9, variation=0.08),
+            "floor": _m(M.wood, (0.72, 0.6, 0.44), 0.5, planks=True, plank_m=(1.8, 0.2)),
+            "cushion": _m(M.fabric, (0.45, 0.5, 0.4)),
+            "accent0": _m(M.fabric, (0.3, 0.28, 0.26)),
+            "accent2": _m(M.fabric, (0.7, 0.45, 0.3)),
+            "lamp_metal": _m(M.metal, (0.1, 0.1, 0.1), 0.5),
             "top": _m(M.wood, (0.8, 0.66, 0.46), 0.45),
             "leg": _m(M.wood, (0.76, 0.62, 0.43), 0.5),
             "wood": _m(M.wood, (0.76, 0.62, 0.43), 0.5),
@@ -583,12 +639,15 @@ STYLES: dict[str, Style] = {
         art_palette=((0.3, 0.25, 0.18), (0.7, 0.55, 0.3), (0.2, 0.3, 0.25), (0.6, 0.2, 0.15), (0.85, 0.75, 0.55)),
         decorate=_dining_set),
     "modular_flat": Style(
-        hdri="city.exr", hdri_strength=0.55, hdri_rotation_deg=-236.0, fill_w=320.0, support_light_w=50.0,
+        hdri="city.exr", hdri_strength=0.26, hdri_rotation_deg=-236.0, fill_w=65.0, support_light_w=6.0,
+        sun=(-80.0, 35.0, 1.0), margin_m=3.7, min_half_m=4.1,
         table_base={"desk": "trestle"}, support_roles={"floor": "floor"},
         windows=(("front", 0.3, 2.4, 0.6, 2.5, (3, 1)), ("right", 0.85, 1.2, 0.8, 2.3, (1, 1))),
         materials={
-            "wall": _m(M.painted, (0.74, 0.8, 0.85), 0.85),
-            "floor": _m(M.wood, (0.74, 0.6, 0.44), 0.5, planks=True, plank_m=(1.4, 0.18)),
+            "wall": _m(M.painted, (0.62, 0.7, 0.76), 0.85, variation=0.07),
+            "floor": _m(M.wood, (0.7, 0.56, 0.4), 0.5, planks=True, plank_m=(1.4, 0.18)),
+            "cork": lambda n: M.image_material(n, f"{n}_img", lambda: _paint.pinboard(5), roughness=0.9),
+            "frame": _m(M.painted, (0.12, 0.12, 0.13), 0.5),
             "top": _m(M.wood, (0.86, 0.76, 0.6), 0.45),
             "leg": _m(M.painted, (0.95, 0.95, 0.94), 0.4),
             "shelf": _m(M.painted, (0.95, 0.95, 0.94), 0.4),
@@ -606,13 +665,13 @@ STYLES: dict[str, Style] = {
         art_palette=((0.97, 0.94, 0.88), (0.92, 0.68, 0.15), (0.2, 0.42, 0.45), (0.85, 0.4, 0.35), (0.15, 0.15, 0.2)),
         decorate=_modular_flat),
     "coastal_living_room": Style(
-        hdri="sunrise.exr", hdri_strength=0.7, hdri_rotation_deg=144.0, fill_w=330.0, support_light_w=50.0,
+        hdri="sunrise.exr", hdri_strength=0.42, hdri_rotation_deg=144.0, fill_w=170.0, support_light_w=9.0,
         table_base={"coffee_table": "tapered", "console": "legs"}, kinds={"console": "table"}, chairs=False,
         windows=(("left", 0.3, 2.0, 0.5, 2.45, (2, 2)), ("right", 0.3, 2.0, 0.5, 2.45, (2, 2))),
         materials={
-            "wall": _m(M.tiles, (0.93, 0.94, 0.93), (0.7, 0.72, 0.72), (2.4, 0.16), 0.5, 0.6, 0.02, 0.003),
+            "wall": _m(M.tiles, (0.86, 0.87, 0.86), (0.66, 0.68, 0.68), (2.4, 0.16), 0.5, 0.6, 0.02, 0.003),
             "floor": _m(M.wood, (0.8, 0.74, 0.64), 0.55, planks=True, plank_m=(1.6, 0.18)),
-            "top": _m(M.wood, (0.88, 0.84, 0.76), 0.55, contrast=0.4),
+            "top": _m(M.wood, (0.8, 0.76, 0.68), 0.55, contrast=0.4),
             "leg": _m(M.wood, (0.86, 0.82, 0.74), 0.55, contrast=0.4),
             "sofa": _m(M.fabric, (0.88, 0.87, 0.82)),
             "cushion": _m(M.fabric, (0.2, 0.35, 0.6), pattern="stripes", second=(0.95, 0.95, 0.92), stripe_m=0.04),
@@ -627,7 +686,8 @@ STYLES: dict[str, Style] = {
         art_palette=((0.85, 0.9, 0.93), (0.2, 0.45, 0.65), (0.9, 0.85, 0.7), (0.4, 0.65, 0.75), (0.95, 0.95, 0.95)),
         decorate=_coastal),
     "beach_gazebo": Style(
-        hdri="sunset.exr", hdri_strength=1.0, hdri_rotation_deg=-156.0, fill_w=0.0, support_light_w=40.0,
+        hdri="sunset.exr", hdri_strength=1.0, hdri_rotation_deg=-156.0, fill_w=0.0, support_light_w=10.0,
+        sky=(200.0, 42.0, 0.1), sun=(200.0, 42.0, 3.0), sun_colour=(1.0, 0.96, 0.9),
         walls=False, floor=False, skirting=False, margin_m=3.0, table_base={"table": "legs"},
         materials={
             "deck": _m(M.wood, (0.62, 0.46, 0.3), 0.6, planks=True, plank_m=(2.4, 0.14)),
@@ -637,7 +697,8 @@ STYLES: dict[str, Style] = {
             "roof": _m(M.fabric, (0.9, 0.86, 0.76), sheen=0.2, pattern="stripes", second=(0.3, 0.55, 0.7),
                        stripe_m=0.6),
             "sand": _m(M.sand),
-            "sea": _m(M.water),
+            "wet_sand": _m(M.sand, (0.62, 0.54, 0.42)),
+            "sea": _m(M.water, (0.02, 0.27, 0.42)),
             "chair_frame": _m(M.wood, (0.55, 0.38, 0.22), 0.5),
             "cushion": _m(M.fabric, (0.25, 0.5, 0.65)),
             "wood": _m(M.wood, (0.55, 0.38, 0.22), 0.5),
@@ -648,14 +709,15 @@ STYLES: dict[str, Style] = {
         },
         decorate=_gazebo),
     "butterfly_mural_room": Style(
-        hdri="forest.exr", hdri_strength=0.6, fill_w=300.0, support_light_w=40.0, table_base={"low_table": "legs"},
-        wall_roles={"back": "mural", "left": "mural"},
+        hdri="forest.exr", hdri_strength=0.3, fill_w=70.0, support_light_w=8.0, table_base={"low_table": "legs"},
+        sun=(-50.0, 38.0, 0.9), margin_m=3.7, min_half_m=4.1,
+        wall_roles={"back": "mural", "left": "mural", "right": "mural", "front": "mural"},
         windows=(("right", 0.75, 1.6, 0.7, 2.4, (2, 2)), ("front", 0.75, 1.6, 0.7, 2.4, (2, 2))),
         materials={
             "mural": lambda n: M.wall_image(n, f"{n}_img", _paint.butterfly_mural, (8.4, 2.8)),
             "wall": _m(M.painted, (0.8, 0.9, 0.85), 0.85),
-            "floor": _m(M.terrazzo),
-            "top": _m(M.painted, (0.95, 0.93, 0.88), 0.4),
+            "floor": _m(M.terrazzo, (0.76, 0.74, 0.7)),
+            "top": _m(M.wood, (0.74, 0.58, 0.4), 0.45),
             "leg": _m(M.wood, (0.7, 0.55, 0.38), 0.5),
             "accent0": _m(M.fabric, (0.95, 0.6, 0.2)),
             "accent1": _m(M.fabric, (0.35, 0.55, 0.85)),
@@ -692,7 +754,7 @@ STYLES: dict[str, Style] = {
         art_palette=((0.2, 0.15, 0.1), (0.75, 0.45, 0.2), (0.88, 0.7, 0.35), (0.4, 0.2, 0.15), (0.25, 0.35, 0.3)),
         decorate=_cozy),
     "modern_warm_kitchen": Style(
-        hdri="sunrise.exr", hdri_strength=0.75, hdri_rotation_deg=-215.7, fill_w=380.0, support_light_w=60.0,
+        hdri="sunrise.exr", hdri_strength=0.6, hdri_rotation_deg=-215.7, fill_w=280.0, support_light_w=25.0,
         round_stools=False, door_w=0.5,
         windows=(("left", 0.35, 1.4, 0.95, 2.4, (2, 2)), ("left", 0.7, 1.4, 0.95, 2.4, (2, 2))),
         materials={

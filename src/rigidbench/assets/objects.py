@@ -85,7 +85,7 @@ def apple() -> tuple[Part, Materials]:
     body = revolve(r, z, 40, radial=lambda vv, phi: 1 + 0.012 * np.cos(5 * phi) * np.sin(np.pi * vv), v_coords=v)
     stem = _stem((0, 0, 0.3), (0.05, 0.0, 0.62), 0.024, 0.017).with_material(1)
     return join([body, stem]), lambda: [
-        M.skin("rb_apple", _paint.apple, roughness=0.35, coat=0.3, bump_scale=400, bump=0.05),
+        M.skin("rb_apple", _paint.apple, roughness=0.4, coat=0.15, bump_scale=400, bump=0.05),
         M.plain("rb_apple_stem", (0.32, 0.22, 0.1), roughness=0.8)]
 
 
@@ -118,7 +118,7 @@ def pomegranate() -> tuple[Part, Materials]:
         return 1 + 0.45 * np.clip(np.cos(6 * phi), 0, None) ** 3 * np.clip((v - 0.4) / 0.4, 0, 1)
     crown = revolve(r, z, 48, radial=star).with_material(1)
     return join([body, crown]), lambda: [
-        M.skin("rb_pomegranate", _paint.pomegranate, roughness=0.45, coat=0.2, bump_scale=300, bump=0.08),
+        M.skin("rb_pomegranate", _paint.pomegranate, roughness=0.5, coat=0.1, bump_scale=300, bump=0.08),
         M.plain("rb_pomegranate_crown", (0.45, 0.12, 0.08), roughness=0.7)]
 
 
@@ -158,7 +158,7 @@ def banana() -> tuple[Part, Materials]:
 
 def watermelon() -> tuple[Part, Materials]:
     body = sphere(48, 24, radial=lambda v, phi: 1 + 0.01 * np.cos(3 * phi) * np.sin(np.pi * v)).transformed(Z_TO_X)
-    return body, lambda: [M.skin("rb_watermelon", _paint.watermelon, roughness=0.35, coat=0.25, bump_scale=120,
+    return body, lambda: [M.skin("rb_watermelon", _paint.watermelon, roughness=0.5, coat=0.1, specular=0.35, bump_scale=120,
                                  bump=0.05)]
 
 
@@ -196,7 +196,7 @@ def tomato() -> tuple[Part, Materials]:
     calyx = revolve(prof_r, prof_z, 60, radial=star).with_material(1)
     stem = _stem((0, 0, surface[0] + 0.01), (0.02, 0.0, surface[0] + 0.1), 0.03, 0.025).with_material(1)
     return join([body, calyx, stem]), lambda: [
-        M.skin("rb_tomato", _paint.tomato, roughness=0.15, coat=0.5, bump_scale=250, bump=0.03),
+        M.skin("rb_tomato", _paint.tomato, roughness=0.3, coat=0.2, bump_scale=250, bump=0.03),
         M.plain("rb_tomato_calyx", (0.2, 0.42, 0.12), roughness=0.6)]
 
 
@@ -227,12 +227,12 @@ def tennis_ball() -> tuple[Part, Materials]:
 
 
 def cricket_ball() -> tuple[Part, Materials]:
-    return sphere(48, 24), lambda: [M.skin("rb_cricket_ball", _paint.cricket_ball, roughness=0.3, coat=0.5,
+    return sphere(48, 24), lambda: [M.skin("rb_cricket_ball", _paint.cricket_ball, roughness=0.4, coat=0.15,
                                            bump_scale=400, bump=0.05, image_bump=0.4)]
 
 
 def bouncy_ball() -> tuple[Part, Materials]:
-    return sphere(32, 16), lambda: [M.skin("rb_bouncy_ball", _paint.bouncy_ball, roughness=0.15, coat=0.8,
+    return sphere(32, 16), lambda: [M.skin("rb_bouncy_ball", _paint.bouncy_ball, roughness=0.2, coat=0.4,
                                            bump=0.02, variation=0.05)]
 
 
@@ -325,13 +325,13 @@ def plastic_bottle() -> tuple[Part, Materials]:
 
 def large_dice() -> tuple[Part, Materials]:
     cube = rounded_box((1.0, 1.0, 1.0), 0.14, flat_steps=4, round_steps=3, atlas=True)
-    return cube, lambda: [M.skin("rb_die", _paint.die, roughness=0.25, coat=0.3, bump_scale=300, bump=0.6,
-                                 image_bump=0.6, variation=0.03)]
+    return cube, lambda: [M.skin("rb_die", _paint.die, roughness=0.3, coat=0.15, bump_scale=300, bump=0.6,
+                                 image_bump=0.6, variation=0.06)]
 
 
 def rubiks_cube() -> tuple[Part, Materials]:
     cube = rounded_box((1.0, 1.0, 1.0), 0.05, flat_steps=6, round_steps=2, atlas=True)
-    return cube, lambda: [M.skin("rb_puzzle_cube", _paint.puzzle_cube, roughness=0.45, coat=0.4, bump_scale=300,
+    return cube, lambda: [M.skin("rb_puzzle_cube", _paint.puzzle_cube, roughness=0.45, coat=0.2, bump_scale=300,
                                  bump=0.6, image_bump=0.5, variation=0.03, roughness_from_image=-0.3)]
 
 
@@ -350,7 +350,7 @@ def toy_duck() -> tuple[Part, Materials]:
         M.skin("rb_duck", _paint.duck, roughness=0.3, coat=0.2, bump_scale=300, bump=0.02, variation=0.05),
         M.plain("rb_duck_beak", (0.98, 0.42, 0.05), roughness=0.3),
         M.plain("rb_duck_eye", (0.02, 0.02, 0.02), roughness=0.08, coat=1.0, variation=0.0),
-        M.plain("rb_duck_head", (0.98, 0.82, 0.08), roughness=0.3, variation=0.06)]
+        M.plain("rb_duck_head", (0.94, 0.76, 0.06), roughness=0.3, variation=0.06)]
 
 
 BUILDERS: dict[str, Callable[[], tuple[Part, list]]] = {

@@ -19,9 +19,10 @@
 - floor-level supports (rugs, decks, floor patches) sit flush in a hole of the room floor,
   which is at ``floor_z_m`` everywhere;
 - the world is one of Blender's bundled CC0 studio-light HDRIs (``style.hdri`` in the YAML may
-  name another), plus a sun through the open top of the room, area lights over the supports
-  and practical lamps. Rooms have no ceiling: at the benchmark's 10 degree camera elevation it
-  is never in view, and the open top lets the sky light the room with little render noise.
+  name another) or, for open-air styles, a physical daytime sky (``Style.sky``), plus a sun
+  through the open top of the room, area lights over the supports and practical lamps. Rooms
+  have no ceiling: at the benchmark's 10 degree camera elevation it is never in view, and the
+  open top lets the sky light the room with little render noise.
 
 Each scene id has a style (palette, furniture, decor) in ``_styles``; an unknown id gets the
 style of its ``style.layout``. All randomness is seeded from the scene id.
@@ -525,13 +526,14 @@ def build_support(kit: Kit, info: SupportInfo) -> None:
         body = F.table_base(L, W, h, style.table_base.get(s.name, "legs"))
         if info.kind == "table" and style.chairs:
             per_side = max(1, int(L / 0.75))
+            gap = style.chair_gap_m
             for k in range(per_side):
                 x = -L / 2 + L * (k + 0.5) / per_side
-                extra.append(("chair", F.chair(style.chair), (x, W / 2 + 0.1), 180.0))
-                extra.append(("chair", F.chair(style.chair), (x, -W / 2 - 0.1), 0.0))
+                extra.append(("chair", F.chair(style.chair), (x, W / 2 + gap), 180.0))
+                extra.append(("chair", F.chair(style.chair), (x, -W / 2 - gap), 0.0))
             if style.end_chairs:
-                extra.append(("chair", F.chair(style.chair), (L / 2 + 0.1, 0.0), 90.0))
-                extra.append(("chair", F.chair(style.chair), (-L / 2 - 0.1, 0.0), -90.0))
+                extra.append(("chair", F.chair(style.chair), (L / 2 + gap, 0.0), 90.0))
+                extra.append(("chair", F.chair(style.chair), (-L / 2 - gap, 0.0), -90.0))
         if info.kind == "desk":  # pushed aside so it hides little of the desk
             extra.append(("office_chair", F.office_chair(), (L / 2 + 0.05, -W / 2 - 0.3), 35.0))
     if body:
@@ -580,6 +582,54 @@ def _world(kit: Kit, hdri: str, strength: float, rotation_deg: float):
     nt.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
     nt.links.new(env.outputs["Color"], bg.inputs["Color"])
     nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    bpy.context.scene.world = world
+    return world
+
+
+def build_studio(scene: Any, hdri: str = "courtyard.exr", strength: float = 1.0, sun_w: float = 3.0):
+    """The neutral studio that objects are looked at in (the gallery's objects sheet, the object
+    colour tests, ``benchmarks/assets_preview.py``): a bundled HDRI world, a sun from 40 degrees
+    off vertical and a 40 m grey floor at z = 0. Returns the floor object."""
+    import bpy
+
+    world = bpy.data.worlds.new("rb_studio")
+    world.use_nodes = True
+    env = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+    folder = bpy.utils.system_resource("DATAFILES", path="studiolights/world")
+    env.image = bpy.data.images.load(f"{folder}/{hdri}", check_existing=True)
+    world.node_tree.links.new(env.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = strength
+    scene.world = world
+    sun = bpy.data.objects.new("rb_studio_sun", bpy.data.lights.new("rb_studio_sun", "SUN"))
+    sun.data.energy, sun.data.angle = sun_w, math.radians(5)
+    sun.rotation_euler = (math.radians(40), 0.0, math.radians(30))
+    scene.collection.objects.link(sun)
+    return to_object(box((40.0, 40.0, 0.02), offset_m=(0, 0, -0.01)), "rb_studio_floor",
+                     [M.painted("rb_studio_floor", (0.55, 0.53, 0.5), 0.6)])
+
+
+def _sky_world(kit: Kit, sun_azimuth_deg: float, sun_elevation_deg: float, strength: float):
+    """A clear daytime sky (Cycles' physical Nishita sky, sun disc off: a SUN lamp casts the shadows)."""
+    import bpy
+
+    world = bpy.data.worlds.new(f"rb_world_{kit.scene.id}")
+    world.use_nodes = True
+    nt = world.node_tree
+    nt.nodes.clear()
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    sky.sky_type = "NISHITA"
+    sky.sun_disc = False
+    sky.sun_elevation = math.radians(sun_elevation_deg)
+    sky.sun_rotation = math.radians(sun_azimuth_deg)
+    sky.air_density = 1.0
+    sky.dust_density = 0.2
+    sky.ozone_density = 1.0
+    bg = nt.nodes.new("ShaderNodeBackground")
+    bg.inputs["Strength"].default_value = strength
+    out = nt.nodes.new("ShaderNodeOutputWorld")
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    world["rb_sky"] = True
     bpy.context.scene.world = world
     return world
 
@@ -633,7 +683,11 @@ def build_environment(scene: SceneConfig):
     kit.walls = _walls(kit.room)
     kit.sides = _relative_sides(_back_side(kit.infos, style.back))
     hdri = str(scene.style.get("hdri", style.hdri))
-    world = _world(kit, hdri, float(scene.style.get("hdri_strength", style.hdri_strength)), style.hdri_rotation_deg)
+    if style.sky is not None and "hdri" not in scene.style:
+        world = _sky_world(kit, *style.sky)
+    else:
+        world = _world(kit, hdri, float(scene.style.get("hdri_strength", style.hdri_strength)),
+                       style.hdri_rotation_deg)
     if scene.mesh_path:
         _user_scene(kit, scene)
     else:

@@ -9,6 +9,15 @@ Paper, appendix "Scene Layout and Camera Selection":
   (the active actors) are sampled and a ray is cast from the camera to each; the first
   (rotation, azimuth) that sees at least 50% of the points is accepted, otherwise the best pair.
 
+Our addition (docs/camera.md), which keeps the paper's lens, elevation, distance and candidate
+order: within the first rotation that has an accepted azimuth, every azimuth is checked with a
+16 x 9 grid of rays through the image. A position is rejected when more than 2% of those rays
+first hit geometry that is nearer than the framed box and above the support's top face (a wall
+beside the camera, a chair or cabinet in front of the action); among the accepted positions the
+one whose background (rays beyond the box, above the top face) hits the most furnishing rather
+than bare wall, floor or sky is taken, ties going to the seeded order. Without the room
+(``environment`` None) only the clearance check runs.
+
 "The support" in the framed box is the part of the support the task uses: the actors' footprint
 at the support's top-face height (the whole support can be a 2.6 m counter or a floor patch,
 which would shrink the objects to a few pixels). Rays see only geometry that renders: objects
@@ -89,6 +98,56 @@ def sample_surface(vertices: np.ndarray, triangles: np.ndarray, count: int, rng:
     s = np.sqrt(r1)
     w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
     return np.einsum("pk,pkj->pj", w, tri[face])
+
+
+STRUCTURE_WORDS = frozenset({"wall", "floor", "skirting", "wainscot", "backsplash", "sand", "sea", "platform",
+                             "steps", "support"})  # scene items that are room, not furnishing
+ABOVE_TOP_M = 0.02  # hits this far above the support's top face can obstruct or count as background
+
+
+def view_grid_uv(cols: int, rows: int, width: float, height: float) -> np.ndarray:
+    """(rows*cols, 2) pixel centres of a regular grid of cells over a width x height image."""
+    u = (np.arange(cols) + 0.5) / cols * width
+    v = (np.arange(rows) + 0.5) / rows * height
+    return np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
+
+
+def box_distance(point: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Euclidean distance (m) from ``point`` to the axis-aligned box [lo, hi] (0 inside)."""
+    p = np.asarray(point, float)
+    return float(np.linalg.norm(np.maximum(np.maximum(lo - p, 0.0), p - hi)))
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewCheck:
+    """What a grid of rays through one candidate view hit."""
+
+    obstruction: float  # fraction of rays stopped above the support top, nearer than the framed box
+    furnishing: float  # fraction of rays that reach past the box above the top face and hit furnishing
+
+    def clear(self, settings: CameraSettings) -> bool:
+        return self.obstruction <= settings.max_obstruction
+
+
+def summarise_view(distance_m: np.ndarray, hit_z_m: np.ndarray, kind: Sequence[str], near_m: float,
+                   top_z_m: float) -> ViewCheck:
+    """Pure core of the view check. Per ray: first-hit distance (inf: nothing), hit height and what
+    was hit ('actor', 'structure', 'furnishing' or 'none'); ``near_m`` is the camera's distance to
+    the framed box, ``top_z_m`` the support's top face."""
+    d, z = np.asarray(distance_m, float), np.asarray(hit_z_m, float)
+    k = np.asarray(kind)
+    above = np.isfinite(d) & (z > top_z_m + ABOVE_TOP_M) & (k != "actor")
+    blocked = above & (d < near_m)
+    furnished = above & (d >= near_m) & (k == "furnishing")
+    n = max(len(d), 1)
+    return ViewCheck(obstruction=float(blocked.sum() / n), furnishing=float(furnished.sum() / n))
+
+
+def item_kind(name: str, scene_id: str) -> str:
+    """'structure' for the room itself (walls, floor, support slabs, sand and sea), else 'furnishing'.
+    Environment objects are named ``<scene id>_<item>_<count>``; supports ``support_<name>``."""
+    core = name[len(scene_id) + 1:] if name.startswith(scene_id + "_") else name
+    return "structure" if STRUCTURE_WORDS & set(core.split("_")) else "furnishing"
 
 
 # -- bpy ------------------------------------------------------------------------------------------
@@ -180,29 +239,75 @@ def pose_bodies(spec: SceneSpec, objects: dict[str, Any]) -> None:
     bpy.context.view_layer.update()
 
 
+def check_view(scene: Any, spec: SceneSpec, relative_azimuth_deg: float, settings: CameraSettings,
+               actors: set, scene_id: str | None) -> ViewCheck:
+    """Cast the view grid from the camera of ``spec`` (at its task rotation) at ``relative_azimuth_deg``."""
+    import bpy
+
+    cam = camera_spec(spec, relative_azimuth_deg, settings, 0.0)
+    R_c, t_c = camera_pose(cam)
+    W, H = 1280.0, 704.0  # only the aspect matters: the paper's frame
+    K = cm.intrinsics(settings.lens_mm, settings.sensor_width_mm, int(W), int(H))
+    rays = cm.pixel_rays(K, R_c, view_grid_uv(settings.view_grid_cols, settings.view_grid_rows, W, H))
+    lo, hi = framing_box(spec, settings.bbox_padding_m)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    dist, z, kind = [], [], []
+    for ray in rays:
+        direction = ray / np.linalg.norm(ray)
+        obj, at = first_render_hit(scene, depsgraph, t_c, direction, CLIP_END_M)
+        dist.append(at)
+        z.append(float(t_c[2] + direction[2] * at) if obj is not None else -math.inf)
+        kind.append("none" if obj is None else "actor" if obj.name in actors else
+                    "structure" if scene_id is None else item_kind(obj.name, scene_id))
+    return summarise_view(np.array(dist), np.array(z), kind, box_distance(t_c, lo, hi), spec.support.centre_m[2])
+
+
 def search_camera(spec: SceneSpec, settings: CameraSettings, scene: Any, posed: dict[str, Any],
-                  targets: Callable[[], Sequence[Any]] | Sequence[Any]) -> SceneSpec:
-    """Visibility search (paper A.3). ``posed`` maps actor name -> bpy object that ``pose_bodies``
-    moves; ``targets`` are the rendered bpy objects of the active actors (in spec order). Returns
-    ``spec`` with ``task_rotation_deg`` and ``camera`` filled. Leaves the actors at the chosen pose."""
+                  targets: Callable[[], Sequence[Any]] | Sequence[Any], actors: Sequence[Any] = (),
+                  scene_id: str | None = None) -> SceneSpec:
+    """Visibility search (paper A.3) with our clearance check and background preference (module
+    docstring). ``posed`` maps actor name -> bpy object that ``pose_bodies`` moves; ``targets`` are
+    the rendered bpy objects of the active actors (in spec order); ``actors`` all rendered actor
+    objects (their hits never obstruct); ``scene_id`` names the built environment whose items count
+    as furnishing (None: no preference). Returns ``spec`` with ``task_rotation_deg`` and ``camera``
+    filled. Leaves the actors at the chosen pose."""
     target_objs = list(targets() if callable(targets) else targets)
     points = target_points(target_objs, settings.points_per_target, spec.seed)
-    best: tuple[float, SceneSpec, float] | None = None
+    actor_names = {o.name for o in [*target_objs, *actors]}
+    best: tuple[float, SceneSpec, float] | None = None  # best visibility of all
+    least_blocked: tuple[float, SceneSpec, float, float] | None = None  # visible, least obstructed
     tried = 0
     for rotation in spec.rotation_candidates_deg[:settings.rotation_attempts]:
         candidate = dataclasses.replace(spec, task_rotation_deg=float(rotation))
         pose_bodies(candidate, posed)
         target, distance = framing(candidate, settings)
+        accepted: list[tuple[float, float, float]] = []  # (furnishing, relative azimuth, visibility)
         for relative in candidate.azimuth_candidates_deg:
             position = cm.camera_position(target, rotation + relative, settings.elevation_deg, distance)
             fraction = visible_fraction(scene, position, target_objs, points)
             tried += 1
             if best is None or fraction > best[0]:
                 best = (fraction, candidate, relative)
-            if fraction >= settings.visibility_threshold:
-                log.debug("example %s: camera at rotation %.1f, azimuth %+.0f sees %.0f%% (%d tried)",
-                          spec.sample_id, rotation, relative, 100 * fraction, tried)
-                return dataclasses.replace(candidate, camera=camera_spec(candidate, relative, settings, fraction))
+            if fraction < settings.visibility_threshold:
+                continue
+            view = check_view(scene, candidate, relative, settings, actor_names, scene_id)
+            if view.clear(settings):
+                accepted.append((view.furnishing, relative, fraction))
+            elif least_blocked is None or view.obstruction < least_blocked[0]:
+                least_blocked = (view.obstruction, candidate, relative, fraction)
+        if accepted:
+            furnishing, relative, fraction = max(accepted, key=lambda a: a[0])  # max keeps the first of ties
+            log.debug("example %s: camera at rotation %.1f, azimuth %+.0f sees %.0f%%, background %.0f%% "
+                      "furnished (%d tried)", spec.sample_id, rotation, relative, 100 * fraction,
+                      100 * furnishing, tried)
+            return dataclasses.replace(candidate, camera=camera_spec(candidate, relative, settings, fraction))
+    if least_blocked is not None:
+        obstruction, candidate, relative, fraction = least_blocked
+        log.warning("example %s: every camera that sees the actors has something nearer than them in view; using "
+                    "the least obstructed (%.0f%% of the image, rotation %.1f, azimuth %+.0f)", spec.sample_id,
+                    100 * obstruction, candidate.task_rotation_deg, relative)
+        pose_bodies(candidate, posed)
+        return dataclasses.replace(candidate, camera=camera_spec(candidate, relative, settings, fraction))
     if best is None:
         raise ValueError(f"example {spec.sample_id}: no rotation or azimuth candidates to search; "
                          "check the task's camera_azimuth_deg ranges")
@@ -238,4 +343,5 @@ def add_camera(scene: Any, camera: CameraSpec, name: str = "camera") -> Any:
 
 
 __all__ = ["framing_box", "framing", "camera_spec", "camera_pose", "sample_surface", "mesh_arrays", "target_points",
-           "first_render_hit", "visible_fraction", "pose_bodies", "search_camera", "add_camera"]
+           "STRUCTURE_WORDS", "view_grid_uv", "box_distance", "ViewCheck", "summarise_view", "item_kind",
+           "first_render_hit", "visible_fraction", "pose_bodies", "check_view", "search_camera", "add_camera"]

@@ -436,7 +436,9 @@ def resolve_camera(spec: SceneSpec, registry: Registry) -> SceneSpec:
     scene, objects, dressing = build_search_scene(spec, registry)
     active = [dressing.render_objects[b.name] for b in spec.active]
     posed = {b.name: objects[b.name] for b in spec.bodies}
-    return search_camera(spec, registry.camera, scene, posed, active)
+    scene_id = dressing.environment.scene_id if dressing.environment is not None else None
+    return search_camera(spec, registry.camera, scene, posed, active, actors=list(dressing.render_objects.values()),
+                         scene_id=scene_id)
 
 
 def _check_poses(objects: Sequence[Any], positions_m: np.ndarray, frame: int, sample_id: str) -> None:
@@ -449,12 +451,15 @@ def _check_poses(objects: Sequence[Any], positions_m: np.ndarray, frame: int, sa
 
 def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, frames_dir: Path, pass_dir: Path,
                    device: str = "auto", threads: int | None = None,
-                   on_frame: Callable[[int, int], None] | None = None, overrides: Any = None) -> ExampleRender:
+                   on_frame: Callable[[int, int], None] | None = None, overrides: Any = None,
+                   rgb_frames: Callable[[Any], Sequence[int]] | None = None) -> ExampleRender:
     """Camera search, simulation and render of one example in this process's Blender.
 
     RGB frames go to ``frames_dir/00000.png ...`` and pass EXRs to ``pass_dir``; ``on_frame(done,
     total)`` reports progress over the 2T renders (T data passes, then T RGB frames). ``overrides``
-    (``overrides.RenderOverrides``) swaps actor materials or offsets rendered actor poses."""
+    (``overrides.RenderOverrides``) swaps actor materials or offsets rendered actor poses.
+    ``rgb_frames(simulation)``, if given, picks the only frames whose RGB is rendered (the gallery's
+    event frames); the data passes still cover every frame. Such a render is not a bundle."""
     import bpy
 
     seconds: dict[str, float] = {}
@@ -500,14 +505,15 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
     seconds["passes_cpu"] = time.process_time() - c3
     t4, c4 = time.perf_counter(), time.process_time()
     beauty_mode(scene, preset, chosen)
-    for f in range(T):
+    wanted = range(T) if rgb_frames is None else sorted({int(f) for f in rgb_frames(sim) if 0 <= f < T})
+    for k, f in enumerate(wanted):
         scene.frame_set(f + 1)
         if overrides is not None:
             overrides.pose(objects, dressing, f)
         scene.render.filepath = str(Path(frames_dir) / f"{f:05d}.png")
         bpy.ops.render.render(write_still=True)
         if on_frame:
-            on_frame(T + f + 1, 2 * T)
+            on_frame(T + k + 1, T + len(wanted))
     seconds["rgb"] = time.perf_counter() - t4
     seconds["rgb_cpu"] = time.process_time() - c4  # CPU time of all render threads (wall time suffers on a busy machine)
     vs = scene.view_settings

@@ -30,13 +30,13 @@ import logging
 import re
 import threading
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-from ..config import config_file, read_config_yaml
+from ..config import FieldReader, config_file, read_config_yaml
 from ..errors import ConfigError, PredictionError, UserError
 from ..jsonio import write_json
 from ..video import VIDEO_EXTENSIONS
@@ -90,97 +90,51 @@ class HostedConfig:
         return self.models[name]
 
 
-def _fail(path: Path, name: str, message: str) -> ConfigError:
-    return ConfigError(f"{path}: field '{name}': {message}")
-
-
-def _mapping(path: Path, name: str, value: Any, allowed: tuple[str, ...] | None = None) -> Mapping:
-    if not isinstance(value, Mapping):
-        raise _fail(path, name, f"expected a mapping, got {value!r}")
-    for key in value:
-        if not isinstance(key, str):
-            raise _fail(path, name, f"keys must be strings, got {key!r}")
-        if allowed is not None and key not in allowed:
-            raise _fail(path, f"{name}.{key}" if name else key, f"unknown field; known fields: {', '.join(allowed)}")
-    return value
-
-
-def _string(path: Path, name: str, value: Any, optional: bool = False) -> str | None:
-    if value is None and optional:
-        return None
-    if not isinstance(value, str) or not value:
-        raise _fail(path, name, f"expected a non-empty string{' or null' if optional else ''}, got {value!r}")
-    return value
-
-
-def _number(path: Path, name: str, value: Any, kind: type, lo: float) -> Any:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)):
-        raise _fail(path, name, f"expected {'an integer' if kind is int else 'a number'}, got {value!r}")
-    if value < lo:
-        raise _fail(path, name, f"must be >= {lo:g}, got {value}")
-    return kind(value)
-
-
-def _flat(path: Path, section: str, data: Any, cls: type, lows: Mapping[str, float]) -> Any:
-    """A dataclass of numbers from one section, every field optional (the dataclass default)."""
-    names = tuple(f.name for f in fields(cls))
-    data = _mapping(path, section, {} if data is None else data, names)
-    values = {}
-    for f in fields(cls):
-        if f.name in data:
-            kind = int if isinstance(f.default, int) else float
-            values[f.name] = _number(path, f"{section}.{f.name}", data[f.name], kind, lows.get(f.name, 0))
-    return cls(**values)
-
-
 def parse_models(path: Path, data: Any) -> HostedConfig:
     """Validate models.yaml; ConfigError names the file and the field."""
     path = Path(path)
-    root = _mapping(path, "", data, ("models", "image", "client"))
-    if "models" not in root:
-        raise _fail(path, "models", "is required but missing")
-    rows = _mapping(path, "models", root["models"])
-    if not rows:
-        raise _fail(path, "models", "expected at least one model")
+    root = FieldReader(path, data)
+    root.reject_unknown(("models", "image", "client"))
+    rows = root.sub("models")
+    if not rows.data:
+        raise ConfigError(f"{path}: field 'models': expected at least one model")
     models = {}
-    for name, row in rows.items():
+    for name in rows.data:
+        row = rows.sub(str(name))
         prefix = f"models.{name}"
-        row = _mapping(path, prefix, row, ("replicate", "image_field", "prompt_field", "negative_prompt_field",
-                                           "seed_field", "inputs"))
-        for required in ("replicate", "image_field", "prompt_field", "inputs"):
-            if required not in row:
-                raise _fail(path, f"{prefix}.{required}", "is required but missing")
-        slug = _string(path, f"{prefix}.replicate", row["replicate"])
+        row.reject_unknown(("replicate", "image_field", "prompt_field", "negative_prompt_field", "seed_field",
+                            "inputs"))
+        slug = row.text("replicate")
         if not _SLUG.match(slug):
-            raise _fail(path, f"{prefix}.replicate", f"expected an official model as 'owner/name', got {slug!r}")
-        inputs = _mapping(path, f"{prefix}.inputs", row["inputs"])
-        for key, value in inputs.items():
+            raise ConfigError(f"{path}: field '{prefix}.replicate': expected an official model as 'owner/name', "
+                              f"got {slug!r}")
+        image_field, prompt_field = row.text("image_field"), row.text("prompt_field")
+        inputs = row.sub("inputs")
+        for key, value in inputs.data.items():
             if not (value is None or isinstance(value, (str, bool, int, float))):
-                raise _fail(path, f"{prefix}.inputs.{key}", f"expected a string, number or boolean, got {value!r}")
-        model = HostedModel(name=str(name), replicate=slug,
-                            image_field=_string(path, f"{prefix}.image_field", row["image_field"]),
-                            prompt_field=_string(path, f"{prefix}.prompt_field", row["prompt_field"]),
-                            negative_prompt_field=_string(path, f"{prefix}.negative_prompt_field",
-                                                          row.get("negative_prompt_field"), optional=True),
-                            seed_field=_string(path, f"{prefix}.seed_field", row.get("seed_field"), optional=True),
-                            inputs=dict(inputs))
+                raise ConfigError(f"{path}: field '{prefix}.inputs.{key}': expected a string, number or boolean, "
+                                  f"got {value!r}")
+        model = HostedModel(name=str(name), replicate=slug, image_field=image_field, prompt_field=prompt_field,
+                            negative_prompt_field=row.text("negative_prompt_field", None),
+                            seed_field=row.text("seed_field", None), inputs=dict(inputs.data))
         wired = [f for f in (model.image_field, model.prompt_field, model.negative_prompt_field, model.seed_field) if f]
         if len(set(wired)) != len(wired):
-            raise _fail(path, prefix, f"two of image_field, prompt_field, negative_prompt_field and seed_field name "
-                                      f"the same input: {wired}")
+            raise ConfigError(f"{path}: field '{prefix}': two of image_field, prompt_field, negative_prompt_field and "
+                              f"seed_field name the same input: {wired}")
         for f in wired:
-            if f in inputs:
-                raise _fail(path, f"{prefix}.inputs.{f}", "this input is filled per example; remove it from inputs")
+            if f in inputs.data:
+                raise ConfigError(f"{path}: field '{prefix}.inputs.{f}': this input is filled per example; remove "
+                                  "it from inputs")
         models[model.name] = model
-    image = _flat(path, "image", root.get("image"), ImageSettings,
-                  {"width": 16, "height": 16, "jpeg_quality": 1, "upload_threshold_bytes": 0})
+    image = root.sub("image", {}).numbers(ImageSettings, {"width": 16, "height": 16, "jpeg_quality": 1,
+                                                          "upload_threshold_bytes": 0})
     if image.jpeg_quality > 100:
-        raise _fail(path, "image.jpeg_quality", f"must lie in [1, 100], got {image.jpeg_quality}")
-    client = _flat(path, "client", root.get("client"), ClientSettings,
-                   {"request_timeout_s": 0.001, "wait_s": 1, "poll_interval_s": 0.0, "poll_max_interval_s": 0.0,
-                    "max_retries": 0, "example_timeout_s": 0.001, "max_output_bytes": 1})
+        raise ConfigError(f"{path}: field 'image.jpeg_quality': must lie in [1, 100], got {image.jpeg_quality}")
+    client = root.sub("client", {}).numbers(ClientSettings, {
+        "request_timeout_s": 0.001, "wait_s": 1, "poll_interval_s": 0.0, "poll_max_interval_s": 0.0,
+        "max_retries": 0, "example_timeout_s": 0.001, "max_output_bytes": 1})
     if client.wait_s > 60:
-        raise _fail(path, "client.wait_s", f"Replicate holds a request at most 60 s, got {client.wait_s}")
+        raise ConfigError(f"{path}: field 'client.wait_s': Replicate holds a request at most 60 s, got {client.wait_s}")
     return HostedConfig(path=path, models=models, image=image, client=client)
 
 
