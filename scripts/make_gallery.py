@@ -278,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=OUT_DIR)
     parser.add_argument("--only", default="", help="comma-separated example ids and/or 'objects' to render now")
     parser.add_argument("--render-only", action="store_true", help="render into --work, write no sheets")
+    parser.add_argument("--partial", action="store_true",
+                        help="write the sheets of the examples rendered so far (the README lists the missing ones)")
     parser.add_argument("--before-data", type=Path, help="split directory of bundles from an older checkout")
     parser.add_argument("--before-objects", type=Path, help="objects PNG (benchmarks/assets_preview.py) from it")
     args = parser.parse_args(argv)
@@ -310,12 +312,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.render_only:
         return 1 if failed else 0
     missing = [r.sample_id for r in chosen if not (args.work / r.sample_id / "info.json").exists()]
-    if missing:
-        log.error("not rendered yet: %s; rerun without --only", " ".join(missing))
+    if missing and not args.partial:
+        log.error("not rendered yet: %s; rerun without --only (or pass --partial)", " ".join(missing))
         return 1
+    if missing:
+        log.warning("writing the sheets that are rendered; missing: %s", " ".join(missing))
+        by_task = {k: r for k, r in by_task.items() if r.sample_id not in missing}
+        by_scene = {k: r for k, r in by_scene.items() if r.sample_id not in missing}
     args.out.mkdir(parents=True, exist_ok=True)
-    for old in [*args.out.glob("task_*.png"), *args.out.glob("scene_*.png")]:
-        old.unlink()
+    for stale in [*args.out.glob("task_*.png"), *args.out.glob("scene_*.png")]:
+        stale.unlink()
     infos = {}
     for prefix, picks in (("task", by_task), ("scene", by_scene)):
         for key, row in sorted(picks.items()):
@@ -337,7 +343,11 @@ def main(argv: list[str] | None = None) -> int:
         data = objects_before_after(reg, args.before_objects, args.work / "objects")
         (args.out / "before_after" / "objects.jpg").write_bytes(data)
         befores.append("objects")
-    (args.out / "README.md").write_text(readme(by_task, by_scene, infos, befores))
+    text = readme(by_task, by_scene, infos, befores)
+    if missing:
+        text += (f"\nNot rendered yet (this gallery was written with `--partial`): examples {', '.join(missing)}; "
+                 "`python scripts/make_gallery.py` renders them and rewrites this page.\n")
+    (args.out / "README.md").write_text(text)
     return 1 if failed else 0
 
 
