@@ -46,6 +46,16 @@ def test_bounce_events_are_release_contact_apex_and_rest():
     assert np.all(np.linalg.norm(traj.linear_velocity_m_s[0, events[3].frame:], axis=-1) < G.REST_SPEED_M_S)
 
 
+def test_a_bounce_between_frames_counts_as_the_first_contact():
+    # the contact test sees only the second landing; the first impact falls between two frames
+    traj, contacts, t1, t_apex = bouncing_ball()
+    late = [c for c in contacts if c.frame > int(np.ceil(t1 * FPS))]
+    events = G.event_frames(traj, late, 49)
+    assert [e.label for e in events] == ["release", "first contact", "rebound apex", "at rest"]
+    assert events[1].frame == int(np.ceil(t1 * FPS)) == G.first_bounce(traj, 49)
+    assert abs(events[2].frame - t_apex * FPS) <= 1.0
+
+
 def test_contact_between_actors_is_preferred_and_initial_contacts_ignored():
     frames = 30
     pos = np.zeros((2, frames, 3))

@@ -24,7 +24,9 @@ from ..groundtruth.trajectory import Contact, Trajectory
 
 REST_SPEED_M_S = 0.03  # an actor moving slower than this (and turning slower than REST_SPIN) is at rest
 REST_SPIN_RAD_S = 0.5
-APEX_MIN_RISE_M = 0.005  # a rebound must rise this much above its contact height to count as an apex
+APEX_MIN_RISE_M = 0.02  # a rebound must rise this much above its contact height to show as an apex
+BOUNCE_FALL_M_S = 0.5  # a rebound counts when the actor fell at least this fast into it ...
+BOUNCE_RISE_M = 0.002  # ... and rises at least this much in the next frame
 MARKERS_PER_ACTOR = 8
 TRAIL_FRAMES = 6
 LABEL_H = 28  # pixels of caption strip above each sheet row
@@ -67,6 +69,11 @@ def _pairs_at(contacts: Sequence[Contact], frame: int) -> set[frozenset]:
     return {frozenset((c.a, c.b)) for c in contacts if c.frame == frame}
 
 
+def _between_actors(trajectory: Trajectory, contacts: Sequence[Contact], frame: int | None) -> bool:
+    actors = set(trajectory.names)
+    return frame is not None and any(c.frame == frame and c.a in actors and c.b in actors for c in contacts)
+
+
 def first_new_contact(trajectory: Trajectory, contacts: Sequence[Contact], n_frames: int) -> int | None:
     """First frame at which an active actor starts touching something it did not touch at frame 0;
     a contact between two actors is preferred to one with the support or floor."""
@@ -78,6 +85,24 @@ def first_new_contact(trajectory: Trajectory, contacts: Sequence[Contact], n_fra
     between_actors = [c for c in new if c.a in actors and c.b in actors]
     chosen = between_actors or new
     return chosen[0].frame if chosen else None
+
+
+def first_bounce(trajectory: Trajectory, n_frames: int) -> int | None:
+    """First frame at which an active actor that was falling faster than BOUNCE_FALL_M_S (in one of
+    the two frame steps before) is at the bottom of a rebound (its height is a local minimum and rises at least BOUNCE_RISE_M in the next
+    frame). At 24 fps the impact itself often falls between two frames, a few millimetres above the
+    support, where the contact test (mesh proximity) does not see it."""
+    best = None
+    for k, role in enumerate(trajectory.roles):
+        if role != "active":
+            continue
+        z = trajectory.positions_m[k, :n_frames, 2]
+        vz = np.diff(z) * trajectory.fps
+        for f in range(1, len(z) - 1):
+            if vz[max(f - 2, 0):f].min() < -BOUNCE_FALL_M_S and z[f + 1] - z[f] >= BOUNCE_RISE_M:
+                best = f if best is None else min(best, f)
+                break
+    return best
 
 
 def rest_frame(trajectory: Trajectory, n_frames: int) -> int | None:
@@ -108,13 +133,18 @@ def apex_frame(trajectory: Trajectory, after: int, before: int) -> int | None:
 
 
 def event_frames(trajectory: Trajectory, contacts: Sequence[Contact], n_frames: int) -> list[Event]:
-    """Release (frame 0), first new contact, the first rebound's apex (bounces) and rest (or the last
-    frame, if the actors never settle), in order and without repeats; a clip without a new contact
+    """Release (frame 0), first contact (the first new contact, or an earlier bounce the contact test
+    missed, unless the contact is between two actors), the first rebound's apex and rest (or the
+    last frame, if the actors never settle), in order and without repeats; a clip without a contact
     shows its midpoint instead."""
     rest = rest_frame(trajectory, n_frames)
     end = n_frames - 1 if rest is None else rest
     events = [Event(0, "release")]
     contact = first_new_contact(trajectory, contacts, n_frames)
+    bounce = first_bounce(trajectory, n_frames)
+    if bounce is not None and (contact is None or bounce < contact) and not _between_actors(trajectory, contacts,
+                                                                                              contact):
+        contact = bounce
     if contact is None:
         events.append(Event(max(1, end // 2), "in motion"))
     else:
@@ -303,6 +333,6 @@ def encode_under(image, max_bytes: int, qualities: Sequence[int] = (92, 88, 84, 
     raise ValueError(f"cannot encode a {image.width}x{image.height} sheet under {max_bytes} bytes")
 
 
-__all__ = ["Event", "pick_examples", "first_new_contact", "rest_frame", "apex_frame", "event_frames",
+__all__ = ["Event", "pick_examples", "first_new_contact", "first_bounce", "rest_frame", "apex_frame", "event_frames",
            "font", "actor_colours", "marker_subset", "outline", "disparity_rgb", "annotate", "example_sheet",
            "objects_sheet", "encode_under"]
