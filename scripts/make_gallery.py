@@ -7,7 +7,7 @@ objects sheet, rendered at the `paper` preset.
 Each example is simulated and its data passes (masks, depth, hence the ground-truth tracks) are
 rendered for every frame, but RGB only at its event frames (release, first new contact, rebound
 apex, rest: ``rigidbench.report.gallery.event_frames``), so a sheet costs 3-4 paper frames
-(30-55 s each on a 2-core CPU) instead of 49. Per-example results land in ``--work`` first and
+(about 105 s each on a 2-core CPU) instead of 49. Per-example results land in ``--work`` first and
 are reused, so an interrupted run resumes where it stopped. The objects sheet renders the 24
 objects four at a time on a plain floor under the same studio light as
 ``benchmarks/assets_preview.py`` and crops a tile around each. Sheets are JPEG under ``MAX_BYTES``.
@@ -247,7 +247,7 @@ def readme(by_task: dict, by_scene: dict, infos: dict, befores: list[str]) -> st
              "and contacts (release, first new contact, rebound apex, rest). Rows: the clean RGB frame; the "
              "same frame with the actor mask outlines and a few ground-truth point tracks (hollow circle: "
              "visible, cross: occluded, with a short trail); the disparity. Regenerate with "
-             "`python scripts/make_gallery.py` (about an hour on a 2-core CPU; interrupted runs resume). A "
+             "`python scripts/make_gallery.py` (about two hours on a 2-core CPU, 5.5-7.5 min per example; interrupted runs resume). A "
              "sheet of every frame of any rendered example comes from `rigidbench show ID`.", "",
              "[All 24 objects](objects.jpg) at the paper preset, held-out ones marked.", "",
              "## One example per task", "", "| task | example | scene | frames | sheet |", "|---|---|---|---|---|"]
