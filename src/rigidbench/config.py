@@ -319,6 +319,8 @@ class CameraSettings:
     view_grid_cols: int = 16  # rays across the image for the clearance and background checks
     view_grid_rows: int = 9
     max_obstruction: float = 0.02  # largest fraction of those rays that may hit something nearer than the framed box
+    # the furnished-background preference applies only among views this close to the best visibility
+    background_visibility_margin: float = 0.1
 
 
 @dataclass(frozen=True)

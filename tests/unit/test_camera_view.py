@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rigidbench.blender.camera import box_distance, item_kind, summarise_view, view_grid_uv
+from rigidbench.blender.camera import box_distance, choose_view, item_kind, summarise_view, view_grid_uv
 
 
 def test_view_grid_covers_the_image_at_cell_centres():
@@ -46,7 +46,25 @@ def test_summarise_view_counts_near_hits_above_the_top_only():
 def test_item_kind_strips_the_scene_prefix():
     assert item_kind("modern_loft_wall_north_004", "modern_loft") == "structure"
     assert item_kind("beach_gazebo_sea_012", "beach_gazebo") == "structure"
+    assert item_kind("beach_gazebo_shore_003", "beach_gazebo") == "structure"  # the wet-sand band
     assert item_kind("support_counter", "modern_loft") == "structure"
     assert item_kind("modern_loft_sofa_007", "modern_loft") == "furnishing"
     # a scene id containing a structure word does not make its furniture structure
     assert item_kind("floor_show_sofa_003", "floor_show") == "furnishing"
+
+
+def test_choose_view_prefers_furnishing_only_among_views_that_see_the_actors_well():
+    # (furnishing, relative azimuth, visibility) in seeded order
+    accepted = [(0.10, -30.0, 1.00),  # sees everything, a little furniture behind
+                (0.40, 0.0, 0.55),  # a furnished background but half the actors hidden (the 00027 case)
+                (0.25, 15.0, 0.92),  # within 0.1 of the best: the most furnished of the eligible views
+                (0.25, 30.0, 0.95)]  # a tie on furnishing: the earlier view keeps it
+    assert choose_view(accepted, visibility_margin=0.1) == (0.25, 15.0, 0.92)
+    # with no margin only the best-seeing view is eligible; with an unbounded one the old rule returns
+    assert choose_view(accepted, visibility_margin=0.0) == (0.10, -30.0, 1.00)
+    assert choose_view(accepted, visibility_margin=1.0) == (0.40, 0.0, 0.55)
+
+
+def test_choose_view_needs_a_view():
+    with pytest.raises(ValueError, match="at least one"):
+        choose_view([], visibility_margin=0.1)

@@ -13,9 +13,10 @@ Our addition (docs/camera.md), which keeps the paper's lens, elevation, distance
 order: within the first rotation that has an accepted azimuth, every azimuth is checked with a
 16 x 9 grid of rays through the image. A position is rejected when more than 2% of those rays
 first hit geometry that is nearer than the framed box and above the support's top face (a wall
-beside the camera, a chair or cabinet in front of the action); among the accepted positions the
-one whose background (rays beyond the box, above the top face) hits the most furnishing rather
-than bare wall, floor or sky is taken, ties going to the seeded order. Without the room
+beside the camera, a chair or cabinet in front of the action); among the accepted positions whose
+visibility is within 0.1 of the best accepted one, the one whose background (rays beyond the box,
+above the top face) hits the most furnishing rather than bare wall, floor or sky is taken, ties
+going to the seeded order. Without the room
 (``environment`` None) only the clearance check runs.
 
 "The support" in the framed box is the part of the support the task uses: the actors' footprint
@@ -100,8 +101,8 @@ def sample_surface(vertices: np.ndarray, triangles: np.ndarray, count: int, rng:
     return np.einsum("pk,pkj->pj", w, tri[face])
 
 
-STRUCTURE_WORDS = frozenset({"wall", "floor", "skirting", "wainscot", "backsplash", "sand", "sea", "platform",
-                             "steps", "support"})  # scene items that are room, not furnishing
+STRUCTURE_WORDS = frozenset({"wall", "floor", "skirting", "wainscot", "backsplash", "sand", "shore", "sea",
+                             "platform", "steps", "support"})  # scene items that are room, not furnishing
 ABOVE_TOP_M = 0.02  # hits this far above the support's top face can obstruct or count as background
 
 
@@ -141,6 +142,19 @@ def summarise_view(distance_m: np.ndarray, hit_z_m: np.ndarray, kind: Sequence[s
     furnished = above & (d >= near_m) & (k == "furnishing")
     n = max(len(d), 1)
     return ViewCheck(obstruction=float(blocked.sum() / n), furnishing=float(furnished.sum() / n))
+
+
+def choose_view(accepted: Sequence[tuple[float, float, float]], visibility_margin: float) -> tuple[float, float, float]:
+    """Pick among accepted views ``(furnishing, relative azimuth, visibility)`` (seeded order): the
+    most furnished background among the views that see the actors within ``visibility_margin`` of
+    the best accepted visibility; ties keep the seeded order. Without the margin a bare table
+    behind the action could win over a view that sees every actor (a ramp seen from behind with
+    its striker hidden on the far slope)."""
+    if not accepted:
+        raise ValueError("choose_view needs at least one accepted view")
+    best_visibility = max(a[2] for a in accepted)
+    near_best = [a for a in accepted if a[2] >= best_visibility - visibility_margin - 1e-12]
+    return max(near_best, key=lambda a: a[0])  # max keeps the first of ties
 
 
 def item_kind(name: str, scene_id: str) -> str:
@@ -296,7 +310,7 @@ def search_camera(spec: SceneSpec, settings: CameraSettings, scene: Any, posed: 
             elif least_blocked is None or view.obstruction < least_blocked[0]:
                 least_blocked = (view.obstruction, candidate, relative, fraction)
         if accepted:
-            furnishing, relative, fraction = max(accepted, key=lambda a: a[0])  # max keeps the first of ties
+            furnishing, relative, fraction = choose_view(accepted, settings.background_visibility_margin)
             log.debug("example %s: camera at rotation %.1f, azimuth %+.0f sees %.0f%%, background %.0f%% "
                       "furnished (%d tried)", spec.sample_id, rotation, relative, 100 * fraction,
                       100 * furnishing, tried)
@@ -343,5 +357,5 @@ def add_camera(scene: Any, camera: CameraSpec, name: str = "camera") -> Any:
 
 
 __all__ = ["framing_box", "framing", "camera_spec", "camera_pose", "sample_surface", "mesh_arrays", "target_points",
-           "STRUCTURE_WORDS", "view_grid_uv", "box_distance", "ViewCheck", "summarise_view", "item_kind",
+           "STRUCTURE_WORDS", "view_grid_uv", "box_distance", "ViewCheck", "summarise_view", "choose_view", "item_kind",
            "first_render_hit", "visible_fraction", "pose_bodies", "check_view", "search_camera", "add_camera"]
