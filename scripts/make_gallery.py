@@ -1,14 +1,16 @@
 """Regenerate docs/gallery/: one sheet per task and per scene (all different eval examples) and an
 objects sheet, rendered at the `paper` preset.
 
-    python scripts/make_gallery.py [--work /tmp/rigidbench_gallery] [--quality paper] [--only 00027,objects]
+    python scripts/make_gallery.py [--work /tmp/rigidbench_gallery] [--quality paper] [--only 00027,objects] [--fresh]
     python scripts/make_gallery.py --before-data DIR --before-objects PNG   # also the before/after thumbnails
 
 Each example is simulated and its data passes (masks, depth, hence the ground-truth tracks) are
 rendered for every frame, but RGB only at its event frames (release, first new contact, rebound
 apex, rest: ``rigidbench.report.gallery.event_frames``), so a sheet costs 3-4 paper frames
 (about 105 s each on a 2-core CPU) instead of 49. Per-example results land in ``--work`` first and
-are reused, so an interrupted run resumes where it stopped. The objects sheet renders the 24
+are reused, so an interrupted run resumes where it stopped. Sheets already in ``--out`` are kept
+when ``examples.json`` there lists them at this preset and the camera search still picks the same
+camera (checked without rendering); ``--fresh`` renders everything. The objects sheet renders the 24
 objects four at a time on a plain floor under the same studio light as
 ``benchmarks/assets_preview.py`` and crops a tile around each. Sheets are JPEG under ``MAX_BYTES``.
 
@@ -34,6 +36,7 @@ OUT_DIR = ROOT / "docs" / "gallery"
 MAX_BYTES = 1_000_000
 OBJECTS_PER_RENDER = 4
 THUMB_W = 480
+INDEX_KEYS = ("sample_id", "task", "scene", "surface", "partition", "preset", "events", "camera")  # examples.json
 
 log = logging.getLogger("make_gallery")
 
@@ -88,7 +91,7 @@ def render_example_events(row, reg, preset, work: Path) -> Path:
             "events": [[e.frame, e.label] for e in chosen], "legend": legend, "preset": preset.name,
             "seconds": {k: round(v, 1) for k, v in result.seconds.items()},
             "camera": {"azimuth_deg": spec.camera.azimuth_deg, "distance_m": spec.camera.distance_m,
-                       "visibility": spec.camera.visibility}}
+                       "target_m": list(spec.camera.target_m), "visibility": spec.camera.visibility}}
     (tmp / "info.json").write_text(json.dumps(info, indent=1))
     Image.open(tmp / "frames" / f"{frames[0]:05d}.png").load()  # the frames were written
     shutil.rmtree(final, ignore_errors=True)
@@ -105,17 +108,51 @@ def example_sheet_bytes(path: Path) -> tuple[bytes, dict]:
     gt = np.load(path / "gt.npz")
     frames = {f: np.asarray(Image.open(path / "frames" / f"{f:05d}.png").convert("RGB")) for f in info["frames"]}
     events = [Event(int(f), str(label)) for f, label in info["events"]]
-    # masks and depth were saved for the event frames only: index them by position
-    T = max(info["frames"]) + 1
-    masks = np.zeros((T, *gt["masks"].shape[1:]), bool)
-    depth = np.full((T, *gt["depth"].shape[1:]), np.inf, np.float32)
-    masks[info["frames"]], depth[info["frames"]] = gt["masks"], gt["depth"]
+    # masks and depth were saved for the event frames only, in the order of info["frames"]
+    masks, depth = dict(zip(info["frames"], gt["masks"])), dict(zip(info["frames"], gt["depth"]))
+    first = frames[info["frames"][0]]
     title = (f"{info['sample_id']}  {info['task']} in {info['scene']} ({info['surface']}), "
-             f"{info['partition'].replace('_', ' ')}  -  {info['preset']} preset, {frames[info['frames'][0]].shape[1]}x"
-             f"{frames[info['frames'][0]].shape[0]}")
+             f"{info['partition'].replace('_', ' ')}  -  {info['preset']} preset, {first.shape[1]}x{first.shape[0]}")
     sheet = example_sheet(frames, events, masks, depth, gt["tracks"], gt["visibility"], gt["actor_index"],
                           info["fps"], title, info["legend"])
     return encode_under(sheet, MAX_BYTES), info
+
+
+# -- sheets already in docs/gallery ----------------------------------------------------------------
+
+
+def camera_key(camera: dict) -> tuple:
+    """What identifies a camera in ``info["camera"]`` (rounded, so a float round trip matches)."""
+    return (round(float(camera["azimuth_deg"]) % 360.0, 4), round(float(camera["distance_m"]), 4),
+            tuple(round(float(v), 4) for v in camera["target_m"]))
+
+
+def current_camera(row, reg) -> dict:
+    """The camera today's code and configs choose for ``row`` (the search alone, no render: about a
+    second)."""
+    from rigidbench.blender.render import resolve_camera
+    from rigidbench.spec.build import build_scene_spec
+
+    cam = resolve_camera(build_scene_spec(row, reg), reg).camera
+    return {"azimuth_deg": cam.azimuth_deg, "distance_m": cam.distance_m, "target_m": list(cam.target_m),
+            "visibility": cam.visibility}
+
+
+def committed_is_current(row, reg, preset, out: Path, index: dict, prefixes: list[str]) -> bool:
+    """True when ``out`` already holds this example's sheets (listed in ``index``, the gallery's
+    examples.json) at this preset and with the camera today's search picks, so they need no render.
+    Scene, object and light changes are not detected: pass --fresh after those."""
+    info = index.get(row.sample_id)
+    if info is None or info.get("preset") != preset.name or "camera" not in info:
+        return False
+    if not all((out / f"{p}.jpg").exists() for p in prefixes):
+        return False
+    now = current_camera(row, reg)
+    if camera_key(now) != camera_key(info["camera"]):
+        log.info("example %s: the camera moved (azimuth %.1f -> %.1f deg); rendering it again", row.sample_id,
+                 info["camera"]["azimuth_deg"], now["azimuth_deg"])
+        return False
+    return True
 
 
 # -- objects ---------------------------------------------------------------------------------------
@@ -247,9 +284,11 @@ def readme(by_task: dict, by_scene: dict, infos: dict, befores: list[str]) -> st
              "and contacts (release, first new contact, rebound apex, rest). Rows: the clean RGB frame; the "
              "same frame with the actor mask outlines and a few ground-truth point tracks (hollow circle: "
              "visible, cross: occluded, with a short trail); the disparity. Regenerate with "
-             "`python scripts/make_gallery.py` (about two hours on a 2-core CPU, 5.5-7.5 min per example; interrupted runs resume). A "
-             "sheet of every frame of any rendered example comes from `rigidbench show ID`.", "",
-             "[All 24 objects](objects.jpg) at the paper preset, held-out ones marked.", "",
+             "`python scripts/make_gallery.py`: it renders the examples whose sheets are missing here or whose "
+             "camera the search now places differently (5.5-7.5 min each on a 2-core CPU; interrupted runs "
+             "resume), and `--fresh` renders all 17 (about two hours). `examples.json` records each sheet's "
+             "events and camera. A sheet of every frame of any rendered example comes from `rigidbench show ID`.",
+             "", "[All 24 objects](objects.jpg) at the paper preset, held-out ones marked.", "",
              "## One example per task", "", "| task | example | scene | frames | sheet |", "|---|---|---|---|---|"]
 
     def frames_of(row):
@@ -276,7 +315,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="scratch directory for the per-example renders (reused between runs)")
     parser.add_argument("--quality", default="paper")
     parser.add_argument("--out", type=Path, default=OUT_DIR)
-    parser.add_argument("--only", default="", help="comma-separated example ids and/or 'objects' to render now")
+    parser.add_argument("--only", default="",
+                        help="comma-separated example ids and/or 'objects': consider only these now")
+    parser.add_argument("--fresh", action="store_true",
+                        help="render every example, even those whose sheets in --out are current")
     parser.add_argument("--render-only", action="store_true", help="render into --work, write no sheets")
     parser.add_argument("--partial", action="store_true",
                         help="write the sheets of the examples rendered so far (the README lists the missing ones)")
@@ -285,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
-    from rigidbench import manifest
+    from rigidbench import jsonio, manifest
     from rigidbench.config import registry
     from rigidbench.report.gallery import pick_examples
 
@@ -295,13 +337,33 @@ def main(argv: list[str] | None = None) -> int:
     by_task, by_scene = pick_examples(rows, sorted(reg.tasks), sorted(reg.scenes))
     chosen = sorted({r.sample_id: r for r in [*by_task.values(), *by_scene.values()]}.values(),
                     key=lambda r: r.sample_id)
+    prefixes = {r.sample_id: [] for r in chosen}
+    for prefix, picks in (("task", by_task), ("scene", by_scene)):
+        for key, row in picks.items():
+            prefixes[row.sample_id].append(f"{prefix}_{key}")
+    index_path = args.out / "examples.json"
+    index = {} if args.fresh or not index_path.exists() else json.loads(index_path.read_text())
     only = {s for s in args.only.split(",") if s}
+    unknown = sorted(only - set(prefixes) - {"objects"})
+    if unknown:
+        parser.error(f"--only {','.join(unknown)}: not a gallery example; the gallery's examples are "
+                     f"{', '.join(sorted(prefixes))} (and 'objects')")
     args.work.mkdir(parents=True, exist_ok=True)
-    failed = []
+    failed: list[str] = []
+    current: dict[str, bool] = {}
+
+    def is_current(row) -> bool:  # the committed sheets need no render (camera search once per example)
+        if row.sample_id not in current:
+            current[row.sample_id] = committed_is_current(row, reg, preset, args.out, index, prefixes[row.sample_id])
+        return current[row.sample_id]
+
     if not only or "objects" in only:
         render_objects(reg, preset, args.work)
     for row in chosen:
         if only and row.sample_id not in only:
+            continue
+        if not (args.work / row.sample_id / "info.json").exists() and is_current(row):
+            log.info("example %s: its sheets in %s are current; kept", row.sample_id, args.out)
             continue
         log.info("example %s (%s, %s)", row.sample_id, row.task, row.scene)
         try:
@@ -311,7 +373,9 @@ def main(argv: list[str] | None = None) -> int:
             failed.append(row.sample_id)
     if args.render_only:
         return 1 if failed else 0
-    missing = [r.sample_id for r in chosen if not (args.work / r.sample_id / "info.json").exists()]
+    rendered = {r.sample_id for r in chosen if (args.work / r.sample_id / "info.json").exists()}
+    kept = [r.sample_id for r in chosen if r.sample_id not in rendered and is_current(r)]
+    missing = [r.sample_id for r in chosen if r.sample_id not in rendered and r.sample_id not in kept]
     if missing and not args.partial:
         log.error("not rendered yet: %s; rerun without --only (or pass --partial)", " ".join(missing))
         return 1
@@ -322,27 +386,34 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     for stale in [*args.out.glob("task_*.png"), *args.out.glob("scene_*.png")]:
         stale.unlink()
-    infos = {}
+    infos = {sid: index[sid] for sid in kept}
     for prefix, picks in (("task", by_task), ("scene", by_scene)):
         for key, row in sorted(picks.items()):
+            if row.sample_id in kept:
+                continue
             data, infos[row.sample_id] = example_sheet_bytes(args.work / row.sample_id)
             (args.out / f"{prefix}_{key}.jpg").write_bytes(data)
             log.info("wrote %s (%d KB)", args.out / f"{prefix}_{key}.jpg", len(data) // 1024)
-    (args.out / "objects.jpg").write_bytes(objects_sheet_bytes(reg, args.work / "objects", preset))
-    befores = []
+    if (args.work / "objects").is_dir():
+        (args.out / "objects.jpg").write_bytes(objects_sheet_bytes(reg, args.work / "objects", preset))
+    elif not (args.out / "objects.jpg").exists():
+        log.warning("no objects sheet: render it with --only objects")
     if args.before_data:
         (args.out / "before_after").mkdir(exist_ok=True)
         for scene, row in sorted(by_scene.items()):
             old = args.before_data / row.sample_id / "frames" / "00000.png"
-            if old.exists():
+            if old.exists() and row.sample_id in rendered:
                 new = args.work / row.sample_id / "frames" / "00000.png"
                 (args.out / "before_after" / f"{scene}.jpg").write_bytes(before_after(old, new, f"{scene} ({row.sample_id})"))
-                befores.append(scene)
     if args.before_objects and args.before_objects.exists():
         (args.out / "before_after").mkdir(exist_ok=True)
         data = objects_before_after(reg, args.before_objects, args.work / "objects")
         (args.out / "before_after" / "objects.jpg").write_bytes(data)
+    befores = sorted(p.stem for p in (args.out / "before_after").glob("*.jpg") if p.stem != "objects")
+    if (args.out / "before_after" / "objects.jpg").exists():
         befores.append("objects")
+    jsonio.write_json(index_path, {sid: {k: infos[sid][k] for k in INDEX_KEYS if k in infos[sid]}
+                                   for sid in sorted(infos)})
     text = readme(by_task, by_scene, infos, befores)
     if missing:
         text += (f"\nNot rendered yet (this gallery was written with `--partial`): examples {', '.join(missing)}; "

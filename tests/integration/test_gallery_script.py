@@ -14,6 +14,8 @@ pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not insta
 
 from PIL import Image  # noqa: E402
 
+from rigidbench import manifest  # noqa: E402
+
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -45,6 +47,39 @@ def test_event_frames_are_rendered_and_drawn(tmp_path, reg):
     assert len(data) <= mg.MAX_BYTES
     sheet = Image.open(io.BytesIO(data))
     assert sheet.format == "JPEG" and sheet.mode == "RGB" and sheet.width >= 3 * 640
+
+    # writing the gallery: the sheet, examples.json (events and camera) and a README naming the rest
+    out = tmp_path / "gallery"
+    assert mg.main(["--quality", "test", "--only", "00005", "--partial", "--work", str(tmp_path),
+                    "--out", str(out)]) == 0
+    written = out / f"task_{info['task']}.jpg"
+    assert Image.open(written).format == "JPEG"
+    index = json.loads((out / "examples.json").read_text())
+    assert set(index) == {"00005"}
+    assert index["00005"]["events"] == info["events"] and index["00005"]["preset"] == "test"
+    assert set(index["00005"]["camera"]) >= {"azimuth_deg", "distance_m", "target_m", "visibility"}
+    readme = (out / "README.md").read_text()
+    assert "| bounce | 00005 |" in readme and "Not rendered yet" in readme
+
+    # a later run with an empty --work keeps the committed sheet: same preset, and the search still
+    # picks the recorded camera (checked without rendering)
+    fresh_work = tmp_path / "fresh_work"
+    sheet_bytes = written.read_bytes()
+    assert mg.main(["--quality", "test", "--only", "00005", "--partial", "--work", str(fresh_work),
+                    "--out", str(out)]) == 0
+    assert not (fresh_work / "00005").exists() and written.read_bytes() == sheet_bytes
+    assert json.loads((out / "examples.json").read_text()) == index
+    # ... but not when the recorded camera, the preset or the sheet differ
+    row = next(r for r in manifest.rows("eval", reg) if r.sample_id == "00005")
+    prefixes = [f"task_{info['task']}"]
+    assert mg.committed_is_current(row, reg, reg.preset("test"), out, index, prefixes)
+    moved = json.loads(json.dumps(index))
+    moved["00005"]["camera"]["azimuth_deg"] += 15.0
+    assert not mg.committed_is_current(row, reg, reg.preset("test"), out, moved, prefixes)
+    assert not mg.committed_is_current(row, reg, reg.preset("preview"), out, index, prefixes)
+    assert not mg.committed_is_current(row, reg, reg.preset("test"), out, index, [*prefixes, "scene_nowhere"])
+    with pytest.raises(SystemExit):  # an id that is not a gallery example is refused up front
+        mg.main(["--quality", "test", "--only", "99999", "--work", str(fresh_work)])
 
 
 def test_objects_sheet_shows_every_object(tmp_path, reg):

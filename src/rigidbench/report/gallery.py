@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -256,18 +256,21 @@ def annotate(rgb: np.ndarray, masks: np.ndarray, tracks_px: np.ndarray, visibili
     return img
 
 
-def example_sheet(frames: dict[int, np.ndarray], events: Sequence[Event], masks: np.ndarray, depth_m: np.ndarray,
+def example_sheet(frames: Mapping[int, np.ndarray], events: Sequence[Event],
+                  masks: Mapping[int, np.ndarray] | np.ndarray, depth_m: Mapping[int, np.ndarray] | np.ndarray,
                   tracks_px: np.ndarray, visibility: np.ndarray, actor_index: np.ndarray, fps: float, title: str,
                   legend: Sequence[str], cell_width: int = 640):
     """A gallery sheet: rows clean RGB, RGB with outlines and markers, disparity; one column per event.
 
-    ``frames`` maps frame -> (H,W,3) uint8 at full resolution; ``masks`` (T,N,H,W), ``depth_m``
-    (T,H,W), ``tracks_px``/``visibility``/``actor_index`` the chosen tracks. Returns a PIL image."""
+    ``frames`` maps frame -> (H,W,3) uint8 at full resolution; ``masks`` ((N,H,W) per frame) and
+    ``depth_m`` ((H,W) per frame) are indexed by frame number: arrays over all T frames or dicts
+    holding the event frames only; ``tracks_px``/``visibility``/``actor_index`` the chosen tracks.
+    Returns a PIL image."""
     from PIL import Image, ImageDraw
 
     H, W = next(iter(frames.values())).shape[:2]
     size = (cell_width, int(round(cell_width * H / W)))
-    finite = depth_m[[e.frame for e in events]]
+    finite = np.stack([np.asarray(depth_m[e.frame]) for e in events])
     finite = finite[np.isfinite(finite) & (finite > 0)]
     near, far = (np.percentile(finite, [0.5, 99.5]) if finite.size else (1.0, 2.0))
     cols = len(events)
