@@ -10,7 +10,9 @@ Writes into the output directory::
                                     correlation (long form, unrounded, unscaled)
     figures/<name>.png, .pdf        ssim_vs_ate3d, ate3d_by_task, metric_intervals, poi_heatmaps
     with fine-tuned checkpoint runs (see report/checkpoints.py): tables/checkpoint_sweep.md/.tex/.csv,
-                                    tables/checkpoint_paired.md/.tex, figures/metric_vs_step.png/.pdf
+                                    tables/checkpoint_paired.md/.tex (with a base run), for the selected
+                                    checkpoints tables/checkpoint_selected_paired, _tasks, _partitions
+                                    .md/.tex, and figures/metric_vs_step.png/.pdf
     examples/<id>/<row>.jpg, .mp4   filmstrips of a few examples: the reference and each prediction with
                                     mask outlines, and looping clips (where the reference bundles and
                                     predictions that run.json records are on this machine)
@@ -43,7 +45,10 @@ _CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "by
                   "all_by_task": ("by_task.csv",), "by_partition": ("by_partition.csv",),
                   "all_by_partition": ("by_partition.csv",), "paired_changes": ("paired_changes.csv",),
                   "poi_ate3d": ("poi_matrix.csv",), "poi_ssim": ("poi_matrix.csv",),
-                  "checkpoint_sweep": ("checkpoint_sweep.csv",), "checkpoint_paired": ("checkpoint_sweep.csv",)}
+                  "checkpoint_sweep": ("checkpoint_sweep.csv",), "checkpoint_paired": ("checkpoint_sweep.csv",),
+                  "checkpoint_selected_paired": ("checkpoint_sweep.csv",),
+                  "checkpoint_selected_tasks": ("by_task.csv",),
+                  "checkpoint_selected_partitions": ("by_partition.csv",)}
 
 
 @dataclass(frozen=True)

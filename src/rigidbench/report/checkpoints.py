@@ -1,5 +1,6 @@
-"""Fine-tuned checkpoints in the report: metric-versus-step curves and paired changes against base Wan
-(paper appendix D, "Complete Checkpoint Results").
+"""Fine-tuned checkpoints in the report: metric-versus-step curves, paired changes against base Wan and the
+selected checkpoints by task and evaluation partition (paper appendix D, "Complete Checkpoint Results" and
+"Task and Evaluation-Partition Breakdowns").
 
 A run is a checkpoint run when the ``generation.json`` of the predictions directory its run.json records
 (written by ``rigidbench predict``) names a checkpoint: ``model.checkpoint`` (or ``settings.checkpoint``)
@@ -11,6 +12,10 @@ the same predictor without a checkpoint.
 
 The paired change of each checkpoint is (checkpoint - base) per example with the same percentile bootstrap
 as the report's baseline comparison (`analysis.paired_vs_baseline`), over the examples shared by all runs.
+The selected checkpoints (per training run, the lowest mean ATE-3D) get the appendix's three further tables:
+their paired changes against base and, with exactly two training runs, against each other (second run minus
+first, paired over the same examples), and their mean ATE-3D by task and ATE-3D / SSIM by evaluation
+partition beside base Wan, from the report's per-group means and marked as its other per-group tables are.
 Anything missing (no predictions directory, no generation.json) leaves that run unclassified; the section
 appears only when at least one checkpoint run is found.
 """
@@ -31,20 +36,26 @@ from rigidbench.report.analysis import Intervals, ReportData, higher_is_better, 
 from rigidbench.report.examples import resolve_dir
 from rigidbench.report.figures import FigureFile, _new_figure, _save, model_colors
 from rigidbench.report.tables import (
+    _ARROW_TEXT,
+    _GROUP_WORDS,
+    _PARTITION_NOTE,
     MARKS_NOTE,
     Cell,
     Table,
+    _grouping,
     _num,
     _write_csv,
     column_decimals,
     display_scale,
     fmt,
+    headline_metrics,
     interval_text,
     marks_for,
     metric_arrow,
     metric_groups,
     metric_label,
     scale_note,
+    value_cell,
 )
 
 log = logging.getLogger(__name__)
@@ -287,9 +298,118 @@ def paired_checkpoint_table(data: ReportData, sweep: CheckpointSweep) -> Table |
                  groups=metric_groups(t.metrics), row_breaks=tuple(breaks))
 
 
+# ------------------------------------------------------------------------- the selected checkpoints
+
+
+def _selected_label(c: CheckpointModel) -> str:
+    """'LoRA 1,000': the training run and step (the model name when no step is known)."""
+    return f"{c.run} {c.step:,}" if c.step is not None else f"{c.run} ({c.name})"
+
+
+def selected_paired_table(data: ReportData, sweep: CheckpointSweep) -> Table | None:
+    """Metric x comparison for the selected checkpoints (the paper's transposed table): each selected checkpoint
+    minus base Wan and, when exactly two training runs have one, the second minus the first, each a mean paired
+    change with its 95% bootstrap interval. None when there is no column (no base and not two selected)."""
+    t = data.table
+    n = len(t.example_ids)
+    chosen = [sweep.checkpoints[i] for i in sweep.selected]
+    # (heading, mean, lo, hi, n_finite arrays over metrics, the two ScoreTable rows compared)
+    columns = []
+    if sweep.base is not None and sweep.diff is not None:
+        d = sweep.diff
+        columns += [(f"{_selected_label(c)} − base", d.mean[i], d.lo[i], d.hi[i], d.n_finite[i],
+                     (c.index, sweep.base)) for i, c in zip(sweep.selected, chosen)]
+    if len(chosen) == 2:
+        first, second = chosen
+        d, _ = paired_vs_baseline(t.scores[[first.index, second.index]], 0, higher_is_better(t.metrics),
+                                  data.resamples, data.seed)
+        columns.append((f"{second.run} − {first.run}", d.mean[1], d.lo[1], d.hi[1], d.n_finite[1],
+                        (second.index, first.index)))
+    if not columns:
+        return None
+    rows = []
+    for k, metric in enumerate(t.metrics):
+        scale = display_scale(metric)
+        decimals = column_decimals(np.array([[col[f][k] for f in (1, 2, 3)] for col in columns]), metric)
+        cells = []
+        for _, mean, lo, hi, n_finite, (a, b) in columns:
+            matched = int(n_finite[k])
+            if t.skipped[a, k] or t.skipped[b, k]:
+                cells.append(Cell("skipped"))
+            elif matched == 0:
+                cells.append(Cell("n/a"))
+            else:
+                cells.append(Cell(fmt(mean[k] * scale, decimals, signed=True),
+                                  interval_text(lo[k] * scale, hi[k] * scale, decimals, signed=True),
+                                  f"n={matched}" if matched < n else "",
+                                  "significant" if (lo[k] > 0 or hi[k] < 0) else ""))
+        rows.append((Cell(metric_label(metric) + _ARROW_TEXT[metric_arrow(metric)]),) + tuple(cells))
+    names = ", ".join(f"{_selected_label(c)} ({c.name})" for c in chosen)
+    against = ([f"against base Wan ({t.models[sweep.base]})"] if sweep.base is not None else []) + (
+        [f"between the two runs' selections ({chosen[1].run} − {chosen[0].run})"] if len(chosen) == 2 else [])
+    caption = (f"Mean paired change of the selected checkpoints ({names}: the lowest mean ATE-3D of each training "
+               f"run) {' and '.join(against)}, on the matched examples, with its 95% percentile bootstrap interval "
+               f"({data.resamples:,} resamples over examples). Bold changes have an interval that excludes 0. "
+               "Positive is better where the arrow points up, negative where it points down; n= counts the examples "
+               "finite for both where some were not." + scale_note(t.metrics))
+    return Table("checkpoint_selected_paired", "Paired changes for the selected checkpoints", caption,
+                 ("Metric",) + tuple(col[0] for col in columns), ("",) * (1 + len(columns)), tuple(rows))
+
+
+def selected_breakdown_table(data: ReportData, sweep: CheckpointSweep, by: str) -> Table | None:
+    """Base Wan and the selected checkpoints x (metric, group): means over each task's (by="task": ATE-3D) or
+    evaluation partition's (by="partition": ATE-3D and SSIM) examples, from the report's per-group means
+    (`data.by_task`, `data.by_partition`), best / second marked among these rows as in the report's other
+    per-group tables. A metric no shown row has drops its group; None without selected checkpoints."""
+    t = data.table
+    if not sweep.selected:
+        return None
+    labels, groups, iv, label = _grouping(data, by)
+    chosen = [sweep.checkpoints[i] for i in sweep.selected]
+    entries = ([("Base", sweep.base)] if sweep.base is not None else []) + [(_selected_label(c), c.index)
+                                                                            for c in chosen]
+    rows_idx = [m for _, m in entries]
+    shown = np.zeros(len(t.models), dtype=bool)
+    shown[rows_idx] = True
+    wanted = ("ate3d",) if by == "task" else headline_metrics(t.metrics)
+    metrics = tuple(m for m in wanted if m in t.metrics and not t.skipped[rows_idx, t.metric_index(m)].all())
+    if not metrics:
+        return None
+    counts = [int(np.sum(labels == g)) for g in groups]
+    columns, header, spans = [], [], []
+    for metric in metrics:
+        k = t.metric_index(metric)
+        decimals = column_decimals(iv.mean[rows_idx, :, k], metric)
+        for g in range(len(groups)):
+            marks = marks_for(iv.mean[:, g, k], metric, shown & data.ranked & ~t.skipped[:, k], decimals)
+            columns.append({m: value_cell(iv.mean[m, g, k], iv.lo[m, g, k], iv.hi[m, g, k],
+                                          int(iv.n_finite[m, g, k]), counts[g], decimals, marks[m],
+                                          bool(t.skipped[m, k]), with_interval=False, scale=display_scale(metric))
+                            for m in rows_idx})
+        header += [label(g) for g in groups]
+        spans.append((f"{metric_label(metric)}{_ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
+    rows = tuple((Cell(text),) + tuple(col[m] for col in columns) for text, m in entries)
+    word, csv_name = _GROUP_WORDS[by]
+    names = " and ".join(METRICS[m].display_name for m in metrics)
+    sizes = ", ".join(f"{label(g)} {c}" for g, c in zip(groups, counts))
+    who = ", ".join(f"{text} ({t.models[m]})" for text, m in entries)
+    caption = (f"Mean {names} over each {word}'s examples ({sizes}) for "
+               + ("base Wan and " if sweep.base is not None else "")
+               + f"the selected checkpoints (the lowest mean ATE-3D of each training run): {who}. Non-finite "
+               "measurements are left out and n= gives the finite count where there were some. "
+               + (_PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
+               + f" The 95% intervals are in {csv_name}." + scale_note(metrics))
+    title = "Selected checkpoints by task" if by == "task" else "Selected checkpoints by evaluation partition"
+    return Table(f"checkpoint_selected_{'tasks' if by == 'task' else 'partitions'}", title, caption,
+                 ("Model",) + tuple(header), ("",) * (1 + len(header)), rows, groups=tuple(spans))
+
+
 def checkpoint_tables(data: ReportData, sweep: CheckpointSweep) -> list[Table]:
-    paired = paired_checkpoint_table(data, sweep)
-    return [sweep_table(data, sweep)] + ([paired] if paired is not None else [])
+    """The section's tables in display order: the sweep, paired changes of every checkpoint against base, then
+    the selected checkpoints' paired changes, by task and by evaluation partition (each where it exists)."""
+    tables = [sweep_table(data, sweep), paired_checkpoint_table(data, sweep), selected_paired_table(data, sweep),
+              selected_breakdown_table(data, sweep, "task"), selected_breakdown_table(data, sweep, "partition")]
+    return [tb for tb in tables if tb is not None]
 
 
 def write_checkpoint_csv(data: ReportData, sweep: CheckpointSweep, out_dir: Path) -> Path:

@@ -4,8 +4,8 @@ The header is short: what was compared, whether it is official (the shared reaso
 the measurements that were not computed folded into one collapsible note. Then the model table,
 the example filmstrips, the task and partition breakdowns (every measurement in a collapsible
 table), the paired comparisons and probability-of-improvement matrices, the fine-tuned checkpoints
-(metric-versus-step curves and paired changes against base Wan, only when some runs are checkpoints),
-and the runs. A probe report given to `build_report` is linked in the header.
+(metric-versus-step curves, paired changes against base Wan and the selected checkpoints' tables, only
+when some runs are checkpoints), and the runs. A probe report given to `build_report` is linked in the header.
 
 Images, clips and downloads are referenced by paths relative to the report directory, so the
 directory can be moved or zipped as a whole; every referenced file is written before the page.
@@ -245,7 +245,10 @@ def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[
         if checkpoints.notes:
             body["checkpoints"].append('<ul class="notes">' + "".join(f"<li>{_e(n)}</li>" for n in checkpoints.notes)
                                        + "</ul>")
-        body["checkpoints"] += (figure("metric_vs_step") + table("checkpoint_sweep") + table("checkpoint_paired"))
+        body["checkpoints"] += figure("metric_vs_step")
+        for key in ("checkpoint_sweep", "checkpoint_paired", "checkpoint_selected_paired",
+                    "checkpoint_selected_tasks", "checkpoint_selected_partitions"):
+            body["checkpoints"] += table(key)
     body["uncertainty"] = figure("metric_intervals", "")
     body["runs"] = ['<div class="scroll">', runs_table(data, notes.extra_reasons), "</div>"]
 
