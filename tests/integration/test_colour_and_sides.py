@@ -26,7 +26,7 @@ def reg():
 
 
 def _render(reg, spec, path, frames=1):
-    from rigidbench.pipeline.render import render_spec
+    from rigidbench.blender.render import render_spec
 
     preset = dataclasses.replace(reg.preset("test"), frames=frames)
     return B.Sample(render_spec(spec, reg, preset, path, device="cpu", threads=2))

@@ -228,7 +228,7 @@ def test_trajectory_is_the_simulation_of_the_resolved_spec(rendered, reg):
 def test_visibility_turns_off_behind_passive_ramp(reg, tmp_path):
     """A coconut drops behind a ramp's 0.45 m back wall, seen from the wall's side: its points are
     visible over the wall at frame 0 and hidden behind it once it lands."""
-    from rigidbench.pipeline.render import render_spec
+    from rigidbench.blender.render import render_spec
 
     ramp = ramp_body(reg, "ramp", 0.40, 0.45, 0.60, foot_x_m=-0.10, descends="+x")  # back wall at x = -0.5
     ball = object_body(reg, "coconut_0", "coconut", (0.10, 0.0, 0.60 + 0.06))

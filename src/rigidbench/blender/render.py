@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,8 @@ import numpy as np
 
 from ..assets import objects as asset_objects, scenes as asset_scenes
 from ..config import RenderPreset, Registry
+from ..groundtruth import bundle as B
+from ..groundtruth.writer import write_bundle
 from ..spec.types import SceneSpec
 from . import physics
 from .camera import add_camera, search_camera
@@ -525,6 +528,26 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
         uses_assets=dressing.uses_assets)
 
 
+def render_spec(spec: SceneSpec, registry: Registry, preset: RenderPreset, final_dir: Path, device: str = "auto",
+                threads: int | None = None, on_frame: Callable[[int, int], None] | None = None,
+                overrides: Any = None) -> Path:
+    """Render a SceneSpec into the bundle directory ``final_dir`` in this process (bpy must be
+    importable); the camera search runs unless ``spec.camera`` is set. ``overrides`` (a
+    ``blender.overrides.RenderOverrides``) changes actor materials or rendered poses, not the
+    simulation. Returns ``final_dir``."""
+    t0 = time.perf_counter()
+    tmp = B.prepare_tmp(final_dir)
+    passes = tmp / ".passes"
+    result = render_example(spec, registry, preset, tmp / B.FRAMES_DIR, passes, device=device, threads=threads,
+                            on_frame=on_frame, overrides=overrides)
+    shutil.rmtree(passes)
+    write_bundle(tmp, result, preset, time.perf_counter() - t0)
+    problems = B.check_bundle(tmp)
+    if problems:
+        raise B.BundleError(f"example {spec.sample_id}: the new bundle in {tmp} is invalid: " + "; ".join(problems))
+    return B.commit(tmp, final_dir)
+
+
 def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
     return dataclasses.replace(spec, render_preset=preset)
 
@@ -533,4 +556,4 @@ __all__ = ["RenderDevice", "select_device", "pick_device", "COLOR_MANAGEMENT", "
            "configure_cycles", "beauty_mode", "light_transport",
            "drop_bump_mapping", "DENOISE_SETTINGS", "data_mode", "add_pass_output",
            "pass_file", "read_passes", "Dressing", "assets_available", "dress_scene", "ExampleRender",
-           "build_search_scene", "resolve_camera", "render_example", "DEVICE_CHOICES"]
+           "build_search_scene", "resolve_camera", "render_example", "render_spec", "DEVICE_CHOICES"]

@@ -10,36 +10,26 @@ with the example id and the reason; the other examples continue.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import os
-import shutil
 import signal
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import numpy as np
 
-from .. import __version__, manifest
-from ..blender.camera import camera_pose
-from ..blender.render import render_example
+from .. import manifest
+from ..blender.render import render_spec
 from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, registry as load_registry
 from ..context import RunContext
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, Resources, Shard, make_executor
 from ..groundtruth import bundle as B
-from ..groundtruth.camera_model import intrinsics, project
 from ..groundtruth.contact_sheet import write_contact_sheet
-from ..groundtruth.contacts import quat_to_matrix
-from ..groundtruth.tracks import DEPTH_TOLERANCE, EROSION_RADIUS_PX, POINTS_PER_ACTOR, ground_truth_tracks
-from ..groundtruth.trajectory import save_contacts
 from ..manifest import ManifestRow
 from ..spec.build import build_scene_spec
-from ..video import write_video
 
 log = logging.getLogger(__name__)
 
@@ -65,88 +55,6 @@ def is_complete(data_dir: Path, row: ManifestRow) -> bool:
 
 
 # -- one example, in this process ------------------------------------------------------------------
-
-
-def image_sides(names: Sequence[str], positions_m: np.ndarray, K: np.ndarray, R_c: np.ndarray,
-                t_c: np.ndarray) -> dict[str, Any]:
-    """Which side of the image each actor starts on, from the camera's point of view: actor centres at
-    frame 0 (``positions_m`` (N,3)) are projected and compared with the mean projected x of all
-    actors; "left" means a smaller image column (x) than that mean. Actor names themselves are neutral
-    (e.g. ramp_a / ramp_b in ramp_collision) because the camera may view the task from either side."""
-    uv, _ = project(np.asarray(positions_m, float), K, R_c, t_c)
-    x = uv[:, 0]
-    mid = float(x.mean())
-    return {"convention": "camera view at frame 0: left = projected actor centre has a smaller image x "
-                          "(column) than the mean over actors (within 0.5 px: centre)",
-            "actors": {n: ("left" if xi < mid - 0.5 else "right" if xi > mid + 0.5 else "centre")
-                       for n, xi in zip(names, map(float, x))},
-            "image_x_px": {n: round(float(xi), 2) for n, xi in zip(names, x)}}
-
-
-def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -> None:
-    """Turn a ``blender.render.ExampleRender`` into the bundle files inside ``tmp`` (frames already there)."""
-    from PIL import Image
-
-    spec = result.spec
-    T = result.index.shape[0]
-    names = tuple(b.name for b in spec.bodies)
-    roles = tuple(b.role for b in spec.bodies)
-    traj = B.slice_trajectory(result.simulation.trajectory, T)
-    if traj.names != names:
-        raise B.BundleError(f"example {spec.sample_id}: simulated actors {traj.names} differ from the spec's {names}")
-    masks = B.masks_from_index(result.index, len(names))
-    R_c, t_c = camera_pose(spec.camera)
-    K = intrinsics(spec.camera.lens_mm, spec.camera.sensor_width_mm, *preset.resolution)
-    tracks = ground_truth_tracks(masks, result.depth_m, K, R_c, t_c, quat_to_matrix(traj.quat_wxyz), traj.positions_m,
-                                 np.array([r == "active" for r in roles]), seed=spec.seed)
-    if tracks.n_points and not tracks.visibility[:, 0].all():
-        log.warning("example %s: %d ground-truth points are not visible at frame 0", spec.sample_id,
-                    int((~tracks.visibility[:, 0]).sum()))
-    B.write_masks(tmp / B.MASKS_FILE, masks, names, roles)
-    B.write_depth(tmp / B.DEPTH_FILE, result.depth_m)
-    traj.save(tmp / B.TRAJECTORIES_FILE)
-    save_contacts(tmp / B.CONTACTS_FILE, [c for c in result.simulation.contacts if c.frame < T], frames=T,
-                  tolerance_m=result.simulation.tolerance_m)
-    tracks.save(tmp / B.TRACKS_FILE)
-    (tmp / B.PROMPT_FILE).write_text(spec.prompt + "\n")
-    (tmp / B.SPEC_FILE).write_text(spec.to_json())
-    frames = np.stack([np.asarray(Image.open(tmp / B.FRAMES_DIR / B.frame_name(k)).convert("RGB")) for k in range(T)])
-    write_video(tmp / B.VIDEO_FILE, frames, fps=float(spec.sim.fps))
-    render_facts = {"engine": "CYCLES", "device": result.device.describe(), "device_kind": result.device.kind,
-                    **{k: v for k, v in dataclasses.asdict(preset).items() if k not in ("name", "resolution", "frames")},
-                    "motion_blur": False, "depth_of_field": False,
-                    "seed": spec.seed, "data_passes": "1 sample at pixel centres (filter width 0.01 px)",
-                    "color_management": result.color_management, "procedural_assets": result.uses_assets}
-    software = {**result.software, "rigidbench": __version__, "python": sys.version.split()[0],
-                "numpy": np.__version__}
-    seconds = {**{k: round(v, 3) for k, v in result.seconds.items()}, "total": round(total_s, 3)}
-    track_facts = {"points_per_actor": POINTS_PER_ACTOR, "erosion_px": EROSION_RADIUS_PX,
-                   "depth_tolerance": DEPTH_TOLERANCE, "sampled": [int(n) for n in tracks.points_per_actor]}
-    meta = B.make_metadata(spec, resolution=preset.resolution, frames=T, simulated_frames=result.simulation.frames,
-                           fps=float(spec.sim.fps), render=render_facts, software=software, seconds=seconds,
-                           tracks=track_facts)
-    meta["image_sides"] = image_sides(names, traj.positions_m[:, 0], K, R_c, t_c)
-    B.write_json(tmp / B.METADATA_FILE, meta)
-
-
-def render_spec(spec: Any, registry: Registry, preset: RenderPreset, final_dir: Path, device: str = "auto",
-                threads: int | None = None, on_frame: Callable[[int, int], None] | None = None,
-                overrides: Any = None) -> Path:
-    """Render a SceneSpec into the bundle directory ``final_dir`` in this process (bpy must be
-    importable); the camera search runs unless ``spec.camera`` is set. ``overrides`` (a
-    ``blender.overrides.RenderOverrides``) changes actor materials or rendered poses, not the
-    simulation. Returns ``final_dir``."""
-    t0 = time.perf_counter()
-    tmp = B.prepare_tmp(final_dir)
-    passes = tmp / ".passes"
-    result = render_example(spec, registry, preset, tmp / B.FRAMES_DIR, passes, device=device, threads=threads,
-                            on_frame=on_frame, overrides=overrides)
-    shutil.rmtree(passes)
-    write_bundle(tmp, result, preset, time.perf_counter() - t0)
-    problems = B.check_bundle(tmp)
-    if problems:
-        raise B.BundleError(f"example {spec.sample_id}: the new bundle in {tmp} is invalid: " + "; ".join(problems))
-    return B.commit(tmp, final_dir)
 
 
 def render_to_bundle(row: ManifestRow, registry: Registry, preset: RenderPreset, data_dir: Path,
@@ -442,6 +350,6 @@ def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
     return 0
 
 
-__all__ = ["Failure", "RenderWorker", "bundle_dir", "is_complete", "write_bundle", "render_spec", "render_to_bundle",
+__all__ = ["Failure", "RenderWorker", "bundle_dir", "is_complete", "render_to_bundle",
            "render_rows", "render_rows_with",
            "cmd_render", "cmd_show", "QUALITIES"]

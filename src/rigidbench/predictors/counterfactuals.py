@@ -49,6 +49,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from ..blender.overrides import RenderOverrides
+from ..blender.render import render_spec
 from ..config import Registry, registry as packaged_registry
 from ..errors import BundleError, PredictionError
 from ..groundtruth.bundle import Sample
@@ -56,7 +57,6 @@ from ..groundtruth.camera_model import project
 from ..groundtruth.contacts import quat_to_matrix
 from ..groundtruth.tracks import carry, visibility
 from ..perception.gt import WorldState, static_background
-from ..pipeline.render import render_spec
 from ..spec.types import BodyPhysics
 from .base import Prediction
 
