@@ -10,7 +10,8 @@ apex, rest: ``rigidbench.report.gallery.event_frames``), so a sheet costs 3-4 pa
 (about 105 s each on a 2-core CPU) instead of 49. Per-example results land in ``--work`` first and
 are reused, so an interrupted run resumes where it stopped. Sheets already in ``--out`` are kept
 when ``examples.json`` there lists them at this preset and the camera search still picks the same
-camera (checked without rendering); ``--fresh`` renders everything. The objects sheet renders the 24
+camera (checked without rendering), and so is the objects sheet unless ``--only objects`` asks for it;
+``--fresh`` renders everything. The objects sheet renders the 24
 objects four at a time on a plain floor under the same studio light as
 ``benchmarks/assets_preview.py`` and crops a tile around each. Sheets are JPEG under ``MAX_BYTES``.
 
@@ -357,8 +358,8 @@ def main(argv: list[str] | None = None) -> int:
             current[row.sample_id] = committed_is_current(row, reg, preset, args.out, index, prefixes[row.sample_id])
         return current[row.sample_id]
 
-    if not only or "objects" in only:
-        render_objects(reg, preset, args.work)
+    if "objects" in only or (not only and (args.fresh or not (args.out / "objects.jpg").exists())):
+        render_objects(reg, preset, args.work)  # otherwise the committed objects sheet stays
     for row in chosen:
         if only and row.sample_id not in only:
             continue
