@@ -396,3 +396,24 @@ def test_decimals_ignore_numerical_noise_beside_real_values():
     assert decimals_for([0.9, 0.8, 1.0]) == 3  # 0.900
     assert decimals_for([0.0048, 0.0016, 0.0012]) == 5  # median 0.0016 -> 0.00160
     assert decimals_for([1e-12]) == 6 and decimals_for([0.0, float("nan")]) == 3
+
+
+def test_scatter_labels_of_coinciding_models_do_not_overlap():
+    """The demo's gamma and background-wobble share their means; their names must still be readable."""
+    from rigidbench.report.figures import _new_figure, place_labels
+
+    fig = _new_figure(7.0, 5.0)
+    ax = fig.add_subplot()
+    points = [(0.129, 0.807, "gamma"), (0.129, 0.804, "background-wobble"), (0.129, 0.805, "reference-like"),
+              (0.188, 0.991, "slow"), (0.227, 0.991, "gravity"), (0.35, 0.989, "static")]
+    ax.scatter([p[0] for p in points], [p[1] for p in points])
+    ax.invert_xaxis()
+    labels = place_labels(ax, points)
+    assert sorted(a.get_text() for a in labels) == sorted(p[2] for p in points)
+    renderer = fig.canvas.get_renderer()
+    boxes = [a.get_window_extent(renderer) for a in labels]
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            assert not boxes[i].overlaps(boxes[j]), (labels[i].get_text(), labels[j].get_text())
+    # a lone point keeps the nearest place: right of and above it
+    assert next(a for a in labels if a.get_text() == "static").xyann == (5, 5)

@@ -40,9 +40,12 @@ class FigureFile:
 
 
 def _new_figure(width_in: float, height_in: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    return Figure(figsize=(width_in, height_in), layout="constrained")
+    fig = Figure(figsize=(width_in, height_in), layout="constrained")
+    FigureCanvasAgg(fig)  # an Agg canvas, so text can be measured before saving (place_labels)
+    return fig
 
 
 def _save(fig, out_dir: Path, key: str, title: str, caption: str) -> FigureFile:
@@ -89,6 +92,36 @@ def correlation_title(corr: dict | None) -> str:
             f"{one('Spearman ρ', 'spearman')}{suffix}")
 
 
+LABEL_OFFSETS_PT = [(5, 5)] + [(5, dy) for k in range(1, 8) for dy in (5 - 12 * k, 5 + 12 * k)] \
+    + [(-5, 5 - 12 * k) for k in range(-3, 4)]  # nearest first; the last ones sit left of the point
+
+
+def place_labels(ax, points, fontsize: float = 8) -> list:
+    """Name each point ``(x, y, text)`` beside it without covering another name: each label takes the
+    first offset of LABEL_OFFSETS_PT (points, right of and then above or below its point, then to its left)
+    whose box overlaps none placed before, top points first; if none is free it keeps the nearest. Call
+    after the axes' limits are final. Returns the annotations."""
+    fig = ax.figure
+    fig.canvas.draw()  # lays out the figure, so the boxes are measured where they will be drawn
+    renderer = fig.canvas.get_renderer()
+    placed, out = [], []
+    for x, y, text in sorted(points, key=lambda p: -p[1]):
+        for dx, dy in LABEL_OFFSETS_PT:
+            label = ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), fontsize=fontsize,
+                                ha="left" if dx >= 0 else "right", va="bottom")
+            box = label.get_window_extent(renderer).expanded(1.05, 1.1)
+            if not any(box.overlaps(b) for b in placed):
+                break
+            label.remove()
+        else:
+            dx, dy = LABEL_OFFSETS_PT[0]
+            label = ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), fontsize=fontsize)
+            box = label.get_window_extent(renderer)
+        placed.append(box)
+        out.append(label)
+    return out
+
+
 def ssim_vs_ate3d(data: ReportData, out_dir: Path) -> FigureFile:
     """Scatter of model means, SSIM against ATE-3D with the ATE-3D axis reversed."""
     t = data.table
@@ -97,6 +130,7 @@ def ssim_vs_ate3d(data: ReportData, out_dir: Path) -> FigureFile:
     colors = model_colors(len(t.models))
     fig = _new_figure(7.0, 5.0)
     ax = fig.add_subplot()
+    labelled = []
     for m, model in enumerate(t.models):
         x, y = o.mean[m, ka], o.mean[m, ks]
         if not (math.isfinite(x) and math.isfinite(y)):
@@ -104,12 +138,13 @@ def ssim_vs_ate3d(data: ReportData, out_dir: Path) -> FigureFile:
         xerr = _errors(o.mean[m:m + 1, ka], o.lo[m:m + 1, ka], o.hi[m:m + 1, ka])
         yerr = _errors(o.mean[m:m + 1, ks], o.lo[m:m + 1, ks], o.hi[m:m + 1, ks])
         ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=colors[m], capsize=3, label=model)
-        ax.annotate(model, (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8)
+        labelled.append((x, y, model))
     ax.invert_xaxis()
     ax.set_xlabel("ATE-3D ↓ (axis reversed: better to the right)")
     ax.set_ylabel("SSIM ↑")
     ax.grid(alpha=0.3)
     ax.set_title(correlation_title(data.correlation), fontsize=9)
+    place_labels(ax, labelled)
     caption = ("Model means with 95% bootstrap intervals over examples. The ATE-3D axis is reversed, and the "
                "correlation is computed against negative ATE-3D; its interval resamples models "
                f"({data.resamples:,} resamples, shown with at least 3 models).")
