@@ -10,8 +10,10 @@ apex, rest: ``rigidbench.report.gallery.event_frames``), so a sheet costs 3-4 pa
 (about 105 s each on a 2-core CPU) instead of 49. Per-example results land in ``--work`` first and
 are reused, so an interrupted run resumes where it stopped. Sheets already in ``--out`` are kept
 when ``examples.json`` there lists them at this preset and the camera search still picks the same
-camera (checked without rendering), and so is the objects sheet unless ``--only objects`` asks for it;
-``--fresh`` renders everything. The objects sheet renders the 24
+camera (checked without rendering), and so is the objects sheet unless ``--only objects`` asks for it.
+Changes to scenes, objects or light are not detected: ``--fresh`` renders every example (with
+``--only``, the ones given) whatever ``--out`` holds; renders already in ``--work`` are still reused,
+so give a new ``--work`` to redo those. The objects sheet renders the 24
 objects four at a time on a plain floor under the same studio light as
 ``benchmarks/assets_preview.py`` and crops a tile around each. Sheets are JPEG under ``MAX_BYTES``.
 
@@ -319,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", default="",
                         help="comma-separated example ids and/or 'objects': consider only these now")
     parser.add_argument("--fresh", action="store_true",
-                        help="render every example, even those whose sheets in --out are current")
+                        help="render the examples (with --only: those given) even where their sheets in --out are "
+                             "current: after a change to scenes, objects or light, which the camera check misses")
     parser.add_argument("--render-only", action="store_true", help="render into --work, write no sheets")
     parser.add_argument("--partial", action="store_true",
                         help="write the sheets of the examples rendered so far (the README lists the missing ones)")
@@ -343,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
         for key, row in picks.items():
             prefixes[row.sample_id].append(f"{prefix}_{key}")
     index_path = args.out / "examples.json"
-    index = {} if args.fresh or not index_path.exists() else json.loads(index_path.read_text())
+    index = json.loads(index_path.read_text()) if index_path.exists() else {}
     only = {s for s in args.only.split(",") if s}
     unknown = sorted(only - set(prefixes) - {"objects"})
     if unknown:
@@ -354,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     current: dict[str, bool] = {}
 
     def is_current(row) -> bool:  # the committed sheets need no render (camera search once per example)
+        if args.fresh and (not only or row.sample_id in only):
+            return False  # --fresh renders the examples it is given (all without --only)
         if row.sample_id not in current:
             current[row.sample_id] = committed_is_current(row, reg, preset, args.out, index, prefixes[row.sample_id])
         return current[row.sample_id]

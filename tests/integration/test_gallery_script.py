@@ -69,6 +69,10 @@ def test_event_frames_are_rendered_and_drawn(tmp_path, reg):
                     "--out", str(out)]) == 0
     assert not (fresh_work / "00005").exists() and written.read_bytes() == sheet_bytes
     assert json.loads((out / "examples.json").read_text()) == index
+    # --fresh renders it again whatever --out holds (the render, not the sheet, is reused from --work)
+    assert mg.main(["--quality", "test", "--only", "00005", "--fresh", "--render-only", "--work", str(fresh_work),
+                    "--out", str(out)]) == 0
+    assert (fresh_work / "00005" / "info.json").exists()
     # ... but not when the recorded camera, the preset or the sheet differ
     row = next(r for r in manifest.rows("eval", reg) if r.sample_id == "00005")
     prefixes = [f"task_{info['task']}"]
