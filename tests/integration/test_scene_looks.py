@@ -159,3 +159,40 @@ def test_white_kitchen_counter_wall_has_decor_at_eye_height(empty_scene):
     hung = [ob for ob in env.occluders if any(k in ob.name for k in ("_rail_", "_art_", "_shelf_"))]
     heights = [(_world_vertices(ob)[:, 2].min(), _world_vertices(ob)[:, 2].max()) for ob in hung]
     assert sum(1 for lo, hi in heights if lo < 1.6 and hi > 1.0) >= 3, heights
+
+
+def _window_hiders(env, scene_id: str, reach_m: float, cover: float) -> list[tuple[str, str]]:
+    """(window, item) pairs where a furnishing item within ``reach_m`` of a window's wall spans more than
+    ``cover`` of the opening's height and overlaps it along the wall (curtains, plants and the like excepted)."""
+    from rigidbench.assets.scenes import WINDOW_DRESSING
+
+    def kind(ob) -> str:
+        return ob.name[len(scene_id) + 1:].rsplit("_", 1)[0]
+
+    boxes = {ob.name: (_world_vertices(ob).min(0), _world_vertices(ob).max(0)) for ob in env.occluders}
+    found = []
+    for win in (ob for ob in env.occluders if kind(ob) == "window"):
+        lo, hi = boxes[win.name]
+        normal = int(np.argmin((hi - lo)[:2]))  # the frame is thin across its wall
+        along = 1 - normal
+        for ob in env.occluders:
+            k = kind(ob)
+            if k in WINDOW_DRESSING or k.startswith(("wall", "floor")) or ob.name == win.name:
+                continue
+            a, b = boxes[ob.name]
+            near = a[normal] < hi[normal] + reach_m and b[normal] > lo[normal] - reach_m
+            overlap_along = min(b[along], hi[along]) - max(a[along], lo[along])
+            overlap_up = min(b[2], hi[2]) - max(a[2], lo[2])
+            if near and overlap_along > 0.05 and overlap_up > cover * (hi[2] - lo[2]):
+                found.append((win.name, ob.name))
+    return found
+
+
+@pytest.mark.parametrize("scene_id", sorted(REG.scenes))
+def test_no_bookcase_or_picture_hides_a_window(empty_scene, scene_id):
+    """A bookcase stood in front of the mural room's window, and a print hung over one in the luxury kitchen
+    and two bookcases over the loft's: wall items now slide beside the windows (Kit.on_wall)."""
+    from rigidbench.assets.scenes import WINDOW_COVER, WINDOW_REACH_M
+
+    env = build_environment(REG.scenes[scene_id])
+    assert _window_hiders(env, scene_id, WINDOW_REACH_M - 0.05, WINDOW_COVER + 0.05) == []

@@ -165,8 +165,8 @@ def _loft(kit) -> None:
     kit.on_wall("front", 0.5, "coffee_table", F.table_base(1.2, 0.6, 0.36, "frame") +
                 [(F.B((1.2, 0.6, 0.04), (0, 0, 0.38)), "wood")], offset_m=1.6)
     _rug(kit, "rug", (2.6, 1.8), kit.walls[kit.sides["front"]].point(0.5, 1.5), "rug_deco")
-    kit.on_wall("left", 0.3, "bookcase", F.bookcase(rng, 1.6, 0.36, 2.1, 5), offset_m=0.2)
-    kit.on_wall("left", 0.72, "bookcase", F.bookcase(rng, 1.2, 0.36, 2.1, 5), offset_m=0.2)
+    for t in (0.2, 0.8):  # either side of the window (the 4.85 m wall leaves about 1 m beside it)
+        kit.on_wall("left", t, "bookcase", F.bookcase(rng, 0.9, 0.36, 2.1, 5), offset_m=0.2)
     _plant(kit, "back", 0.05, "tall", 1.8, 0.22)
     _plant(kit, "back", 0.95, "palm", 1.6, 0.2)
     _plant(kit, "front", 0.15, "bush", 1.0)

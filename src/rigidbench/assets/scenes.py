@@ -53,6 +53,26 @@ KEEP_CLEAR_M = 0.4  # no tall clutter this close to a support's edge (chairs and
 CLEAR_ABOVE_M = 1.5  # no scene geometry in the column this high above a support's top face
 CLEAR_INSET_M = 0.05  # ... over the top face shrunk by this much on every side
 CLEAR_FLOOR_M = 0.001  # the column starts this far above the top face
+WINDOW_REACH_M = 0.6  # an item this close to a wall ...
+WINDOW_COVER = 0.4  # ... hides a window when it spans more than this fraction of the opening's height
+WINDOW_MARGIN_M = 0.1  # items slid aside keep this gap to the opening (and to the wall's ends)
+WINDOW_DRESSING = frozenset({"window", "curtains", "skirting", "wainscot", "backsplash", "plant", "floor_lamp"})
+
+
+def slide_clear(centre_m: float, half_m: float, length_m: float, spans: list[tuple[float, float]],
+                margin_m: float = WINDOW_MARGIN_M) -> float | None:
+    """Pure core of keeping windows clear: an item spanning ``centre_m`` +- ``half_m`` along a wall of
+    ``length_m`` must not overlap any ``(start, end)`` span (window openings, m along the wall) nor
+    leave the wall. Returns ``centre_m`` when it is clear, else the nearest centre just beside a span
+    that is, or None when there is none."""
+    def clear(c: float) -> bool:
+        inside = margin_m + half_m - 1e-9 <= c <= length_m - margin_m - half_m + 1e-9
+        return inside and all(c + half_m <= a - margin_m + 1e-9 or c - half_m >= b + margin_m - 1e-9 for a, b in spans)
+
+    if not any(centre_m + half_m > a and centre_m - half_m < b for a, b in spans):
+        return centre_m  # covers no window (staying on the wall is the caller's business, as before)
+    candidates = [c for a, b in spans for c in (a - margin_m - half_m, b + margin_m + half_m) if clear(c)]
+    return min(candidates, key=lambda c: abs(c - centre_m)) if candidates else None
 
 
 @dataclass
@@ -274,10 +294,43 @@ class Kit:
 
     def on_wall(self, side: str, t: float, name: str, pieces: F.Pieces, offset_m: float = 0.0, z: float = 0.0,
                 check: bool = True):
-        """Place ``pieces`` against wall ``side`` (back/front/left/right) at fraction ``t`` along it."""
+        """Place ``pieces`` against wall ``side`` (back/front/left/right) at fraction ``t`` along it.
+
+        An item that would hide a window of that wall (within WINDOW_REACH_M of it and covering more
+        than WINDOW_COVER of the opening's height) slides along the wall to the nearest place beside
+        the windows, or is left out where there is none; curtains, plants and the like
+        (WINDOW_DRESSING) stay where they are put."""
         wall = self.walls[self.sides[side]]
+        if name not in WINDOW_DRESSING and pieces:
+            t = self._beside_windows(side, t, name, pieces, offset_m, z)
+            if t is None:
+                return None
         p = wall.point(t, offset_m)
         return self.item(name, pieces, p, z, wall.rot_deg, check=check)
+
+    def _beside_windows(self, side: str, t: float, name: str, pieces: F.Pieces, offset_m: float,
+                        z: float) -> float | None:
+        wall = self.walls[self.sides[side]]
+        v = join([p for p, _ in pieces]).vertices  # local frame: x along the wall, y away from it, z up
+        if offset_m - float(v[:, 1].max()) > WINDOW_REACH_M:
+            return t
+        z0, z1 = z + float(v[:, 2].min()), z + float(v[:, 2].max())
+        floor = self.scene.floor_z_m
+        spans = [(wt * wall.length_m - w / 2, wt * wall.length_m + w / 2)
+                 for s, wt, w, sill, top, _ in self.style.windows
+                 if s == side and min(z1, floor + top) - max(z0, floor + sill) > WINDOW_COVER * (top - sill)]
+        if not spans:
+            return t
+        x0, x1 = float(v[:, 0].min()), float(v[:, 0].max())
+        centre = t * wall.length_m + (x0 + x1) / 2
+        moved = slide_clear(centre, (x1 - x0) / 2, wall.length_m, spans)
+        if moved is None:
+            log.debug("scene %s: left out %s on the %s wall: it would hide a window", self.scene.id, name, side)
+            return None
+        if moved != centre:
+            log.debug("scene %s: %s slid %.2f m along the %s wall, clear of a window", self.scene.id, name,
+                      moved - centre, side)
+        return (moved - (x0 + x1) / 2) / wall.length_m
 
     def light(self, kind: str, location, power_w: float, colour=(1.0, 0.9, 0.78), size_m: float = 0.5,
               size_y_m: float | None = None, rotation=(0.0, 0.0, 0.0), name: str = "lamp"):
