@@ -93,8 +93,7 @@ def render_example_events(row, reg, preset, work: Path) -> Path:
             "partition": row.partition, "prompt": spec.prompt, "fps": float(spec.sim.fps), "frames": frames,
             "events": [[e.frame, e.label] for e in chosen], "legend": legend, "preset": preset.name,
             "seconds": {k: round(v, 1) for k, v in result.seconds.items()},
-            "camera": {"azimuth_deg": spec.camera.azimuth_deg, "distance_m": spec.camera.distance_m,
-                       "target_m": list(spec.camera.target_m), "visibility": spec.camera.visibility}}
+            "camera": camera_record(spec.camera)}
     (tmp / "info.json").write_text(json.dumps(info, indent=1))
     Image.open(tmp / "frames" / f"{frames[0]:05d}.png").load()  # the frames were written
     shutil.rmtree(final, ignore_errors=True)
@@ -130,15 +129,19 @@ def camera_key(camera: dict) -> tuple:
             tuple(round(float(v), 4) for v in camera["target_m"]))
 
 
+def camera_record(cam) -> dict:
+    """The ``info["camera"]`` entry of a CameraSpec."""
+    return {"azimuth_deg": cam.azimuth_deg, "distance_m": cam.distance_m, "target_m": list(cam.target_m),
+            "visibility": cam.visibility}
+
+
 def current_camera(row, reg) -> dict:
     """The camera today's code and configs choose for ``row`` (the search alone, no render: about a
     second)."""
     from rigidbench.blender.render import resolve_camera
     from rigidbench.spec.build import build_scene_spec
 
-    cam = resolve_camera(build_scene_spec(row, reg), reg).camera
-    return {"azimuth_deg": cam.azimuth_deg, "distance_m": cam.distance_m, "target_m": list(cam.target_m),
-            "visibility": cam.visibility}
+    return camera_record(resolve_camera(build_scene_spec(row, reg), reg).camera)
 
 
 def committed_is_current(row, reg, preset, out: Path, index: dict, prefixes: list[str]) -> bool:

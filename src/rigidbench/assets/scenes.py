@@ -311,7 +311,7 @@ class Kit:
     def _beside_windows(self, side: str, t: float, name: str, pieces: F.Pieces, offset_m: float,
                         z: float) -> float | None:
         wall = self.walls[self.sides[side]]
-        v = join([p for p, _ in pieces]).vertices  # local frame: x along the wall, y away from it, z up
+        v = join([p for p, _ in pieces]).vertices  # local frame: x along the wall, +y towards it (the back), z up
         if offset_m - float(v[:, 1].max()) > WINDOW_REACH_M:
             return t
         z0, z1 = z + float(v[:, 2].min()), z + float(v[:, 2].max())
