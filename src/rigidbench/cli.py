@@ -118,8 +118,11 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
     executor, shard = executor_from(args)
     summary = evaluate(args.predictions, _split_dir(args), out, perception=args.perception, ids=_selected_ids(args),
                        limit=args.limit, model=args.model, perception_options=options, executor=executor, shard=shard,
-                       device=ctx.device)
+                       device=ctx.device, protocol=args.protocol)
     overall = summary.results["overall"]
+    dataset = summary.results.get("dataset", {})
+    print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
+          f"{summary.results['protocol']['name']}")
     print(f"{summary.results['model']}: {len(summary.evaluated)} evaluated, {len(summary.reused)} unchanged "
           f"(reused), {len(summary.failed)} failed -> {out}")
     for name, stats in overall.items():
@@ -157,7 +160,7 @@ def _predict_context(args, ctx: RunContext):
 
     options = {"concurrency": args.concurrency, "offload": args.offload or None, "tiled_vae": args.tiled_vae or None,
                "checkpoint": args.checkpoint, "no_guardrail": args.no_guardrail or None, "model_path": args.model_path,
-               "repay_expired": args.repay_expired or None}
+               "repay_expired": args.repay_expired or None, "sampler": args.sampler}
     return PredictContext(ctx, args.severity, args.seed,
                           options=MappingProxyType({k: v for k, v in options.items() if v is not None}))
 
@@ -268,7 +271,8 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     """Options of video models (each model uses the ones that apply to it and records them)."""
     p.add_argument("--severity", type=float, default=1.0,
                    help="failure modes: 0 = the reference, 1 = strong (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="generation seed for video models (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="base seed for video models: each example gets its own, "
+                                                       "derived from this and its id (default 0)")
     p.add_argument("--concurrency", type=int, help="hosted models: predictions in flight at once (default 8)")
     p.add_argument("--repay-expired", action="store_true",
                    help="hosted models: pay for a new prediction when a paid one's output has expired at the API")
@@ -277,6 +281,9 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--offload", action="store_true", help="local models: model CPU offload (smaller GPUs)")
     p.add_argument("--tiled-vae", action="store_true", help="local models: tiled VAE decoding (smaller GPUs)")
     p.add_argument("--checkpoint", type=Path, help="wan-2.2: a LoRA adapter or a full fine-tuned transformer")
+    p.add_argument("--sampler", choices=("flow-euler", "unipc"),
+                   help="wan-2.2: flow-euler (default; the paper's runs: DiffSynth's flow-matching Euler schedule, "
+                        "shift 5) or unipc (the Diffusers repository's scheduler)")
     p.add_argument("--model-path", type=Path, help="local models: weights from this directory instead of the hub")
     p.add_argument("--no-guardrail", action="store_true",
                    help="cosmos-2.5: replace the Cosmos guardrail with a pass-through (you take on its licence terms)")
@@ -320,6 +327,22 @@ def build_parser() -> argparse.ArgumentParser:
                              "are available to the command (repeatable)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("download", help="the paper's published evaluation set: download (resumable), verify, extract "
+                                        "and import into DATA/eval (about 40 GB of free disk while it runs)")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data root (default: data); bundles go to DATA/eval")
+    p.add_argument("--dataset", help="dataset id or name from configs/datasets (default: the newest published set)")
+    p.add_argument("--keep-archive", action="store_true", help="keep the downloaded parts after extraction")
+    p.add_argument("--no-verify", action="store_true", help="skip the archive's MD5 check (not recommended)")
+    p.set_defaults(func=_lazy("rigidbench.datasets.commands:cmd_download"))
+
+    p = sub.add_parser("import", help="import a published evaluation set you downloaded by hand (the .tar.gz, its "
+                                      "parts' folder, or the extracted folder) into DATA/eval")
+    p.add_argument("src", type=Path, help="the archive (.tar.gz), or the folder it was extracted into")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data root (default: data); bundles go to DATA/eval")
+    p.add_argument("--dataset", help="which published set this is, for the record (default: the newest described)")
+    p.add_argument("--ids", nargs="+", metavar="ID", help="import only these sample ids")
+    p.set_defaults(func=_lazy("rigidbench.datasets.commands:cmd_import"))
 
     p = sub.add_parser("manifest", help="write the fixed train (5,000) or eval (100) manifest as JSON Lines")
     p.add_argument("--split", choices=("train", "eval"), required=True)
@@ -386,6 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="neural perception device, e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
+    p.add_argument("--protocol", choices=("rigidbench-v1", "lossless"), default="rigidbench-v1",
+                   help="rigidbench-v1: the published evaluator's rules, comparable with the paper (generated frames "
+                        "go through JPEG q95 4:4:4 after resizing); lossless: no JPEG round trip (docs/metrics.md)")
     add_executor_arguments(p)
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)

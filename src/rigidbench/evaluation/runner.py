@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from ..errors import EXAMPLE_ERRORS, EvaluationError, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
-from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity
 from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
 from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
@@ -22,6 +22,7 @@ from ..perception.gt import state_path
 from ..video import VIDEO_EXTENSIONS, align_video, read_video, reference_times, resize_frames
 from .aggregation import EVAL_SIZE, aggregate, why_not_official
 from .cache import file_hash, input_key, reference_hash, write_json
+from .protocol import Protocol, get_protocol
 from .provenance import run_info
 from .scoring import score_example
 
@@ -65,7 +66,8 @@ def _finite_or_none(x: float | None) -> float | None:
 def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
              ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
              model: str | None = None, progress: bool = True, perception_options: dict | None = None,
-             executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None) -> EvaluationSummary:
+             executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None,
+             protocol: str | None = None) -> EvaluationSummary:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
     holding one split); writes out/examples/<id>.json and .npz, out/results.json and out/run.json.
 
@@ -73,7 +75,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
     ``out/cache/<backend>/``. A rerun reuses examples whose inputs are unchanged. ``executor`` runs
     the examples (default: in this process); ``shard`` scores only its part of the selection (its
-    results.json covers that part; a final run without ``shard`` reuses every example and aggregates)."""
+    results.json covers that part; a final run without ``shard`` reuses every example and aggregates).
+    ``protocol`` names the evaluation protocol (``evaluation.protocol``; default ``rigidbench-v1``, the
+    published evaluator's rules)."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
@@ -89,6 +93,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     refs = shard.select(refs[:limit] if limit is not None else refs)
     executor = executor or LocalExecutor()
     metrics = tuple(METRICS)
+    rules = get_protocol(protocol)
     backend = ready_backend(perception, perception_options)
     local = isinstance(executor, LocalExecutor)
     if local and nets is None:
@@ -115,7 +120,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             log.warning("example %s failed: %s", sample_id, exc)
             continue
         pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
-        key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}", nets_key, metrics)
+        key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}|protocol:{rules.name}", nets_key,
+                        metrics)
         record_path = out_dir / "examples" / f"{sample_id}.json"
         old = json.loads(record_path.read_text()) if record_path.exists() else {}
         if old.get("input_key") == key:
@@ -124,7 +130,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
         else:
             todo.append({"id": sample_id, "key": key})
     job = {"pred_dir": str(pred_dir.resolve()), "data_dir": str(data_dir.resolve()), "out_dir": str(out_dir.resolve()),
-           "model": model, "perception": perception, "perception_options": perception_options or {}, "device": device}
+           "model": model, "perception": perception, "perception_options": perception_options or {}, "device": device,
+           "protocol": rules.name}
     bar = tqdm(total=len(todo), unit="example", desc="evaluate", disable=not progress or not todo)
 
     def collect(item: dict, result: dict) -> None:
@@ -151,7 +158,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     official = (len(all_ids) == EVAL_SIZE and len(selected) == len(all_ids) and complete_ids == set(all_ids)
                 and not failed and not missing_metrics)
     skipped = {m: _skip_reason(records, m, nets) for m in missing_metrics}
-    results = {"model": model, "perception": backend.name, "official": official, "metrics": list(metrics),
+    results = {"model": model, "perception": backend.name, "protocol": rules.facts(),
+               "dataset": set_identity(refs), "official": official, "metrics": list(metrics),
                "n_examples": len(records), "n_reference": len(all_ids), "failed": failed,
                "skipped_metrics": skipped, **aggregate(records, metrics)}
     if shard.count > 1:
@@ -160,8 +168,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
         results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics)
     write_json(out_dir / "results.json", results)
     feature_nets = nets if nets is not None else FeatureNets(skipped={m: skipped[m] for m in skipped})
-    write_json(out_dir / "run.json", run_info(model, pred_dir, data_dir, backend, feature_nets, metrics, pred_hashes,
-                                              ref_hashes, timings, time.time() - started, evaluated, reused, failed))
+    info = run_info(model, pred_dir, data_dir, backend, feature_nets, metrics, pred_hashes, ref_hashes, timings,
+                    time.time() - started, evaluated, reused, failed)
+    write_json(out_dir / "run.json", {**info, "protocol": rules.facts(), "dataset": results["dataset"]})
     return EvaluationSummary(out_dir, evaluated, reused, failed, skipped, official, results)
 
 
@@ -190,6 +199,7 @@ class EvaluateWorker:
         if hasattr(self.backend, "use_cache_dir"):
             self.backend.use_cache_dir(self.out_dir / "cache" / self.backend.name)
         self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
+        self.protocol = get_protocol(job.get("protocol"))
 
     def __call__(self, item: dict) -> dict:
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
@@ -199,14 +209,14 @@ class EvaluateWorker:
             if pred is None:
                 raise EvaluationError(f"{sample_id}: its prediction disappeared from {self.pred_dir}")
             record = _score_one(Sample(self.data_dir / sample_id), pred, self.backend, self.nets, self.model,
-                                item["key"], self.out_dir, timings)
+                                item["key"], self.out_dir, timings, self.protocol)
         except EXAMPLE_ERRORS as exc:
             return failure_record(exc)
         return {"status": "succeeded", "record": record, "timings": timings}
 
 
 def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, out_dir: Path,
-               timings: dict[str, float]) -> dict:
+               timings: dict[str, float], protocol: Protocol) -> dict:
     """Decode, perceive (cached by input key), align and score one example; writes its .npz and .json."""
     sample_id = sample.sample_id
     t0 = time.time()
@@ -217,6 +227,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     w, h = sample.resolution
     if video.size != (w, h):
         video.frames = resize_frames(video.frames, (w, h))
+    video.frames = protocol.prepare(video.frames)
     timings["decode_s"] += time.time() - t0
     t0 = time.time()
     cache = out_dir / "cache" / f"{sample_id}-{backend.name}-{key[:16]}.npz"
@@ -234,6 +245,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     scores = score_example(sample, gen_rgb, aligned, nets)
     timings["metrics_s"] += time.time() - t0
     record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
+              "protocol": protocol.name,
               "frames_compared": int(gen_rgb.shape[0]), "input_key": key, "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
               "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}

@@ -56,6 +56,37 @@ PIXEL_CONVENTION = "pixel (x, y) = (column, row) with integer values at pixel ce
 DEPTH_CONVENTION = "Cycles Z pass: metres along the camera's optical axis; +inf where no surface is hit"
 
 
+def no_spec_message(sample_id: str) -> str:
+    """Why a command that re-simulates cannot run on an imported bundle."""
+    return (f"example {sample_id} was imported from the published set, which ships no scene spec, so it cannot be "
+            "re-simulated; use a bundle rendered with `rigidbench render` for this")
+
+
+def is_foreign_sample(path: Path) -> bool:
+    """A sample folder in the published archive's layout (metadata with ``task_type``, no ``sample_id``)."""
+    try:
+        meta = json.loads((Path(path) / METADATA_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and "task_type" in meta and "sample_id" not in meta
+
+
+def is_foreign_root(path: Path) -> bool:
+    """A data root in the published archive's layout (manifest.json + samples/, or eval/ of such samples)."""
+    path = Path(path)
+    if (path / "manifest.json").is_file() and (path / "samples").is_dir():
+        return True
+    for folder in (path, path / "eval"):
+        if folder.is_dir() and any(is_foreign_sample(d) for d in sorted(folder.iterdir())[:3] if d.is_dir()):
+            return True
+    return False
+
+
+def foreign_layout_message(path: Path) -> str:
+    return (f"{path}: this is the published evaluation set's own layout, which RigidBench commands do not read "
+            f"directly; convert it once with `rigidbench import {path} --data DIR` and pass --data DIR")
+
+
 def frame_name(k: int) -> str:
     """File name of frame ``k`` (0-based) inside ``frames/``."""
     return f"{k:05d}.png"
@@ -165,6 +196,8 @@ class Sample:
         if not (self.path / METADATA_FILE).is_file():
             raise BundleError(f"{self.path}: not a sample bundle (no {METADATA_FILE}); render it with "
                               "`rigidbench render`")
+        if is_foreign_sample(self.path):
+            raise BundleError(foreign_layout_message(self.path))
 
     def __repr__(self) -> str:
         return f"Sample({str(self.path)!r})"
@@ -294,9 +327,42 @@ class Sample:
     def prompt(self) -> str:
         return (self.path / PROMPT_FILE).read_text().strip()
 
+    @property
+    def imported(self) -> bool:
+        """True for a bundle imported from a published set (``rigidbench import``): it has no scene spec."""
+        return bool(self.metadata.get("source"))
+
     @functools.cached_property
     def spec(self) -> SceneSpec:
+        if self.imported and not (self.path / SPEC_FILE).is_file():
+            raise BundleError(no_spec_message(self.path.name))
         return SceneSpec.from_json((self.path / SPEC_FILE).read_text())
+
+
+def dataset_identity(metadata: dict[str, Any]) -> dict[str, Any]:
+    """Which set a bundle belongs to: the published set's name, version and MD5 for an imported bundle
+    (``metadata["source"]``), else "rendered" with the preset it was rendered at."""
+    source = metadata.get("source") or {}
+    if source:
+        return {"dataset": source.get("dataset"), "version": source.get("version"), "md5": source.get("md5")}
+    return {"dataset": "rendered", "version": f"bundle v{metadata.get('bundle_version')}", "md5": None,
+            "preset": metadata.get("preset")}
+
+
+def set_identity(bundle_dirs_: list[Path]) -> dict[str, Any]:
+    """The identity of a selection of bundles: one ``dataset_identity`` when they agree, else
+    ``{"dataset": "mixed", "sets": [...]}`` (unreadable metadata is skipped: the example fails elsewhere)."""
+    seen: list[dict[str, Any]] = []
+    for d in bundle_dirs_:
+        try:
+            ident = dataset_identity(json.loads((Path(d) / METADATA_FILE).read_text()))
+        except (OSError, ValueError, AttributeError):
+            continue
+        if ident not in seen:
+            seen.append(ident)
+    if len(seen) == 1:
+        return seen[0]
+    return {"dataset": "mixed" if seen else "unknown", "sets": seen}
 
 
 # -- validation ----------------------------------------------------------------------------------
@@ -311,7 +377,7 @@ def bundle_dirs(split_dir: str | Path) -> list[Path]:
     if not split_dir.is_dir():
         return []
     return sorted(p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
-                  and (p / "metadata.json").is_file())
+                  and (p / "metadata.json").is_file() and not is_foreign_sample(p))
 
 
 def _holders(root: Path, depth: int = 3) -> list[Path]:
@@ -336,6 +402,9 @@ def resolve_split_dir(data: str | Path, split: str | None = None) -> Path:
     if not data.is_dir():
         raise BundleError(f"{data}: data directory does not exist; render examples into it with "
                           f"`rigidbench render --split {split or 'eval'} --data {data}`")
+    if is_foreign_root(data):
+        root = data.parent if data.name in ("samples", "eval") and is_foreign_root(data.parent) else data
+        raise BundleError(foreign_layout_message(root))
     if bundle_dirs(data):
         if split is not None and data.name in SPLITS and data.name != split:
             raise BundleError(f"{data} is the '{data.name}' split directory, but --split {split} was given; "
@@ -389,6 +458,14 @@ def _check_array(problems: list[str], file: str, data: dict[str, np.ndarray], ke
     return a
 
 
+def _imported(path: Path) -> bool:
+    try:
+        meta = json.loads((path / METADATA_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and bool(meta.get("source"))
+
+
 def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
     """Problems with the bundle at ``path`` (empty when valid): every file present, documented
     shapes and dtypes, consistent T (frames), N (actors), H and W everywhere."""
@@ -396,8 +473,10 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
     if not path.is_dir():
         return [f"{path}: bundle directory does not exist"]
     problems: list[str] = []
+    imported = _imported(path)
     for name in BUNDLE_FILES:
-        _check(problems, (path / name).is_file(), f"{name}: missing")
+        if not (imported and name == SPEC_FILE):  # an imported bundle has no scene spec
+            _check(problems, (path / name).is_file(), f"{name}: missing")
     if not (path / METADATA_FILE).is_file():
         return problems
     try:
@@ -508,4 +587,5 @@ __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_
            "TRAJECTORIES_FILE", "CONTACTS_FILE", "TRACKS_FILE", "METADATA_FILE", "PROMPT_FILE", "SPEC_FILE",
            "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
            "slice_trajectory", "camera_metadata", "make_metadata", "prepare_tmp", "commit", "Sample",
-           "check_bundle"]
+           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "is_foreign_sample", "is_foreign_root",
+           "foreign_layout_message"]

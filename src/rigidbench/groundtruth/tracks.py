@@ -8,6 +8,14 @@ frame-zero mask. A point is visible at frame t only if it lies in front of the c
 image and the actor's mask there, and its camera depth is at most 1.01 x the rendered depth.
 
 Pixel coordinates put integer values at pixel centres (see ``camera_model``).
+
+Two sampling rules exist (``TRACK_RULES``); they differ only in how query pixels are drawn:
+``rigidbench`` (our renders until now) erodes by a disk of radius 3 and draws every actor's points
+from one generator seeded with the example seed; ``published`` is the rule of the paper's released
+evaluator, which computed the tracks of the published evaluation set at evaluation time: 3
+iterations of a 3x3 cross (a diamond of radius 3), the raw mask when fewer than 20 pixels survive,
+and a fresh generator seeded 42 for every actor. Projection and visibility are the same in both;
+the principal point is whatever the bundle's K says (the published set's is (W/2, H/2)).
 """
 
 from __future__ import annotations
@@ -21,6 +29,33 @@ from .camera_model import project, unproject
 POINTS_PER_ACTOR = 20
 EROSION_RADIUS_PX = 3
 DEPTH_TOLERANCE = 1.01  # visible while camera depth <= 1.01 x rendered depth
+
+
+@dataclass(frozen=True)
+class TrackRule:
+    """How query pixels are drawn from an actor's frame-0 mask.
+
+    erosion: "disk" (one erosion by a disk of radius ``erosion_px``) or "cross" (``erosion_px``
+    iterations of a 3x3 cross); fallback_to_mask: draw from the raw mask when fewer than the wanted
+    points survive erosion; fixed_seed: None draws every actor from one generator seeded with the
+    example seed, an int gives each actor a fresh generator with that seed."""
+
+    name: str
+    erosion: str
+    erosion_px: int
+    fallback_to_mask: bool
+    fixed_seed: int | None
+
+    def facts(self) -> dict:
+        return {"rule": self.name, "erosion": self.erosion, "erosion_px": self.erosion_px,
+                "fallback_to_mask": self.fallback_to_mask,
+                "seed": "example seed" if self.fixed_seed is None else f"{self.fixed_seed} per actor"}
+
+
+TRACK_RULES = {
+    "rigidbench": TrackRule("rigidbench", "disk", EROSION_RADIUS_PX, False, None),
+    "published": TrackRule("published", "cross", 3, True, 42),
+}
 
 
 @dataclass
@@ -94,11 +129,27 @@ def erode(mask: np.ndarray, radius_px: int = EROSION_RADIUS_PX) -> np.ndarray:
     return out
 
 
+def erode_cross(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """mask (H,W) bool -> (H,W) bool eroded ``iterations`` times by a 3x3 cross (outside = background)."""
+    from scipy import ndimage
+
+    mask = np.asarray(mask, dtype=bool)
+    if iterations <= 0:
+        return mask.copy()
+    return ndimage.binary_erosion(mask, structure=ndimage.generate_binary_structure(2, 1), iterations=iterations)
+
+
 def sample_query_pixels(mask0: np.ndarray, count: int, rng: np.random.Generator,
-                        radius_px: int = EROSION_RADIUS_PX) -> np.ndarray:
+                        radius_px: int = EROSION_RADIUS_PX, rule: TrackRule | None = None) -> np.ndarray:
     """mask0 (H,W) bool. Returns (min(count, M), 2) int64 (x, y) pixels drawn without replacement
-    from the M pixels of the mask eroded by ``radius_px``."""
-    rows, cols = np.nonzero(erode(mask0, radius_px))
+    from the M pixels of the mask eroded by ``radius_px`` (or as ``rule`` says)."""
+    if rule is not None and rule.erosion == "cross":
+        pool = erode_cross(mask0, rule.erosion_px)
+    else:
+        pool = erode(mask0, rule.erosion_px if rule is not None else radius_px)
+    if rule is not None and rule.fallback_to_mask and int(pool.sum()) < count:
+        pool = np.asarray(mask0, dtype=bool)
+    rows, cols = np.nonzero(pool)
     if len(rows) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     pick = rng.choice(len(rows), size=min(count, len(rows)), replace=False)
@@ -141,10 +192,11 @@ def visibility(uv: np.ndarray, depth_cam_m: np.ndarray, actor_mask: np.ndarray, 
 def ground_truth_tracks(masks: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R_c: np.ndarray, t_c: np.ndarray,
                         rotations: np.ndarray, positions_m: np.ndarray, active: np.ndarray, seed: int,
                         points_per_actor: int = POINTS_PER_ACTOR,
-                        erosion_px: int = EROSION_RADIUS_PX) -> Tracks:
+                        erosion_px: int = EROSION_RADIUS_PX, rule: TrackRule | None = None) -> Tracks:
     """masks (T,N,H,W) bool; depth_m (T,H,W) Z pass; K (3,3); camera R_c (3,3), t_c (3,) (Blender
     camera-to-world); actor poses rotations (N,T,3,3), positions_m (N,T,3); active (N,) bool.
-    Returns Tracks for the active actors, sampled with ``np.random.default_rng(seed)`` in actor order."""
+    Returns Tracks for the active actors, sampled with ``np.random.default_rng(seed)`` in actor order
+    (or as ``rule`` says: the published rule ignores ``seed``)."""
     T, N = masks.shape[:2]
     rng = np.random.default_rng(seed)
     per_actor = np.zeros(N, dtype=np.int64)
@@ -152,7 +204,9 @@ def ground_truth_tracks(masks: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R
     for a in range(N):
         if not active[a]:
             continue
-        query = sample_query_pixels(masks[0, a], points_per_actor, rng, erosion_px)
+        if rule is not None and rule.fixed_seed is not None:
+            rng = np.random.default_rng(rule.fixed_seed)
+        query = sample_query_pixels(masks[0, a], points_per_actor, rng, erosion_px, rule)
         per_actor[a] = len(query)
         if not len(query):
             continue
@@ -169,5 +223,5 @@ def ground_truth_tracks(masks: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R
                   points_per_actor=per_actor)
 
 
-__all__ = ["Tracks", "POINTS_PER_ACTOR", "EROSION_RADIUS_PX", "DEPTH_TOLERANCE", "disk", "erode",
+__all__ = ["Tracks", "TrackRule", "TRACK_RULES", "erode_cross", "POINTS_PER_ACTOR", "EROSION_RADIUS_PX", "DEPTH_TOLERANCE", "disk", "erode",
            "sample_query_pixels", "body_points", "carry", "visibility", "ground_truth_tracks"]

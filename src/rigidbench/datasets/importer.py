@@ -1,0 +1,474 @@
+"""Import the published evaluation set into bundles every RigidBench command reads.
+
+The authors' archive has its own layout (a data root holding ``manifest.json`` + ``samples/<id>/``
+or ``eval/<id>/``, perhaps under a top folder; per sample ``frames/`` and/or ``video.mp4``,
+``masks.npz`` with ``object_names``, ``depth.npz`` with 1e10 where nothing is hit,
+``trajectories.npz`` keyed ``<actor>_positions``/``_rotations``, ``contacts.json`` as a list,
+``metadata.json`` without ``sample_id``). ``import_published`` turns each sample into
+``DATA/eval/<id>/`` in our bundle layout (``groundtruth.bundle``):
+
+- metadata renamed (``sample_id``, ``task``, ``partition`` with underscores, ``fps``, ``resolution``),
+  actors with roles and the physics of our object YAMLs by ``object_id``, the camera as K and both
+  pose matrices (the principal point stays where the published intrinsics put it, (W/2, H/2), so
+  every measurement unprojects as the published evaluator did), and ``source`` keeping the dataset's
+  name, version, MD5 and the original metadata;
+- masks with names and roles; depth with no-hit (1e10, or 0 for a missing pass frame) as +inf;
+  trajectories stacked (N,T,.) with velocities recomputed in SI units; contacts in our schema;
+- ground-truth point tracks computed by the published evaluator's rule (``TRACK_RULES["published"]``)
+  from the published depth, masks and poses;
+- frames as 8-bit RGB PNGs, hard-linked (or symbolically linked across file systems) when the
+  published PNG already is one, converted otherwise, decoded from ``video.mp4`` when ``frames/`` is
+  absent; ``video.mp4`` linked when it is H.264 with every frame, encoded from the frames otherwise.
+
+Each sample is built in a temporary sibling and renamed into place, and records a digest of its
+source files, so an interrupted import resumes without redoing finished samples, a rerun skips
+what is unchanged, and one damaged sample is reported without stopping the others. The scene spec
+cannot be rebuilt from the archive: imported bundles have none, and the commands that need one
+(re-simulated predictors, ``validate-metrics --with-rendered``) say so.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from .. import __version__
+from ..errors import EXAMPLE_ERRORS, BundleError, UserError
+from ..groundtruth import bundle as B
+from ..groundtruth import camera_model as cm
+from ..groundtruth.contacts import quat_to_matrix
+from ..groundtruth.tracks import DEPTH_TOLERANCE, POINTS_PER_ACTOR, TRACK_RULES, ground_truth_tracks
+from ..groundtruth.trajectory import Trajectory
+from ..video import VideoError, probe_video, read_video, write_video
+
+log = logging.getLogger(__name__)
+
+#: depth values at or above this are "nothing was hit" in the published depth.npz (Blender writes 1e10)
+NO_HIT_DEPTH = 1e9
+PUBLISHED_PIXEL_CONVENTION = ("published set: integer pixel indices with the principal point at (W/2, H/2), as "
+                              "the released evaluator unprojects (half a pixel from Blender's pixel centres)")
+TOP_FOLDERS = ("rigidbench", "rigidbench-eval-v1.1", "rigidbench-eval-v1")
+SOURCE_FILES = ("metadata.json", "masks.npz", "depth.npz", "trajectories.npz", "contacts.json", "prompt.txt",
+                "video.mp4")
+DIGEST_VERSION = 1  # bump when the conversion changes, so a rerun re-imports every sample
+
+
+@dataclass
+class ImportSummary:
+    """What ``import_published`` did: bundles written, kept (unchanged) and failed (id -> reason)."""
+
+    root: Path
+    split_dir: Path
+    imported: list[str] = field(default_factory=list)
+    unchanged: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+
+# -- finding the published data root ------------------------------------------------------------
+
+
+def _holds_samples(folder: Path) -> bool:
+    return folder.is_dir() and any(p.is_dir() and not p.name.startswith(".") for p in folder.iterdir())
+
+
+def is_published_root(folder: Path) -> bool:
+    """A published data root: ``manifest.json`` with ``samples/``, or an ``eval/`` of published samples."""
+    folder = Path(folder)
+    if (folder / "manifest.json").is_file() and _holds_samples(folder / "samples"):
+        return True
+    eval_dir = folder / "eval"
+    return _holds_samples(eval_dir) and any(is_published_sample(p) for p in sorted(eval_dir.iterdir())[:3])
+
+
+def is_published_sample(folder: Path) -> bool:
+    """A sample folder in the published layout (its metadata has ``task_type`` and no ``sample_id``)."""
+    meta = Path(folder) / "metadata.json"
+    if not meta.is_file():
+        return False
+    try:
+        doc = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "task_type" in doc and "sample_id" not in doc
+
+
+def find_published_root(src: str | Path) -> Path:
+    """The published data root at or below ``src`` (the folder itself, a known top folder, or any
+    folder up to three levels down holding ``manifest.json`` or ``eval/``); UserError otherwise."""
+    src = Path(src)
+    if not src.is_dir():
+        raise UserError(f"{src}: no such folder; pass the extracted archive's folder or the .tar.gz file")
+    candidates = [src] + [src / name for name in TOP_FOLDERS]
+    if src.name in ("samples", "eval"):
+        candidates.insert(0, src.parent)
+    level = [src]
+    for _ in range(3):
+        level = sorted(d for parent in level for d in parent.iterdir() if d.is_dir() and not d.name.startswith("."))
+        candidates += level
+    for folder in candidates:
+        if is_published_root(folder):
+            return folder
+    raise UserError(f"{src}: no published RigidBench evaluation set here (looked for manifest.json with samples/, "
+                    "or eval/<id>/ folders whose metadata.json has task_type); is the extraction complete?")
+
+
+def published_samples(root: Path) -> list[tuple[str, Path, dict]]:
+    """(id, folder, manifest row or {}) of every sample folder of a published root, sorted by id."""
+    rows: dict[str, dict] = {}
+    manifest = root / "manifest.json"
+    if manifest.is_file():
+        try:
+            doc = json.loads(manifest.read_text())
+        except (OSError, ValueError) as exc:
+            raise BundleError(f"{manifest}: cannot be read ({exc}); extract the archive again") from None
+        if not isinstance(doc, list):
+            raise BundleError(f"{manifest}: expected a list of rows; extract the archive again")
+        rows = {str(r["sample_id"]): r for r in doc if isinstance(r, dict) and "sample_id" in r}
+    folder = root / "samples" if (root / "samples").is_dir() else root / "eval"
+    return [(p.name, p, rows.get(p.name, {})) for p in sorted(folder.iterdir())
+            if p.is_dir() and not p.name.startswith(".")]
+
+
+# -- reading one published sample ---------------------------------------------------------------
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise BundleError(f"{path}: missing from the published sample; extract the archive again") from None
+    except (OSError, ValueError) as exc:
+        raise BundleError(f"{path}: cannot be read ({exc}); extract the archive again") from None
+
+
+def _read_npz(path: Path, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            wanted = z.files if keys is None else list(keys)
+            missing = [k for k in wanted if k not in z.files]
+            if missing:
+                raise BundleError(f"{path}: no array {', '.join(missing)} (has {', '.join(z.files)}); is this the "
+                                  "published set?")
+            return {k: z[k] for k in (z.files if keys is None else wanted)}
+    except FileNotFoundError:
+        raise BundleError(f"{path}: missing from the published sample; extract the archive again") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise BundleError(f"{path}: damaged ({exc}); extract the archive again") from None
+
+
+def source_digest(folder: Path) -> str:
+    """A digest of a published sample's files (names, sizes, metadata text) that changes when it does."""
+    h = hashlib.sha256(f"rigidbench-import-{DIGEST_VERSION}".encode())
+    for name in SOURCE_FILES:
+        p = folder / name
+        h.update(f"{name}:{p.stat().st_size if p.is_file() else -1};".encode())
+    frames = folder / B.FRAMES_DIR
+    if frames.is_dir():
+        for p in sorted(frames.iterdir()):
+            h.update(f"{p.name}:{p.stat().st_size};".encode())
+    meta = folder / "metadata.json"
+    if meta.is_file():
+        h.update(meta.read_bytes())
+    return h.hexdigest()
+
+
+def _camera(meta: dict, where: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """K (3,3), R_c (3,3), t_c (3,), W, H from the published camera block."""
+    try:
+        intr, extr = meta["camera"]["intrinsics"], meta["camera"]["extrinsics"]
+        K = np.array([[float(intr["fx"]), 0.0, float(intr["cx"])], [0.0, float(intr["fy"]), float(intr["cy"])],
+                      [0.0, 0.0, 1.0]])
+        W, H = int(intr["width"]), int(intr["height"])
+        t_c = np.array(extr["location"], dtype=np.float64)
+        q = np.array(extr["rotation"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BundleError(f"{where}: camera.intrinsics/extrinsics incomplete ({exc!r}); is this the published "
+                          "set?") from None
+    if t_c.shape != (3,) or q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) < 0.5:
+        raise BundleError(f"{where}: camera extrinsics malformed (location {t_c.tolist()}, rotation {q.tolist()})")
+    return K, quat_to_matrix(q), t_c, W, H
+
+
+def _actor_physics(object_id: str | None, registry) -> dict[str, Any]:
+    if registry is None or not object_id or object_id not in registry.objects:
+        return {"mass_kg": None, "friction": None, "restitution": None, "size_m": None}
+    obj = registry.objects[object_id]
+    return {"mass_kg": obj.physics.mass_kg, "friction": obj.physics.friction,
+            "restitution": obj.physics.restitution, "size_m": list(obj.size_m)}
+
+
+def _frames(src: Path, dst: Path, T: int, W: int, H: int) -> None:
+    """Fill dst/frames with T 8-bit RGB PNGs: linked when the published PNG already is one, converted
+    otherwise, decoded from video.mp4 when there is no frames/ folder."""
+    from PIL import Image, UnidentifiedImageError
+
+    out = dst / B.FRAMES_DIR
+    out.mkdir()
+    src_frames = src / B.FRAMES_DIR
+    names = [B.frame_name(k) for k in range(T)]
+    if src_frames.is_dir() and any(src_frames.iterdir()):
+        have = sorted(p.name for p in src_frames.glob("*.png"))
+        if have[:T] != names:
+            raise BundleError(f"{src_frames}: expected {T} frames {names[0]}..{names[-1]}, found {len(have)}; "
+                              "extract the archive again")
+        for name in names:
+            path = src_frames / name
+            try:
+                with Image.open(path) as im:
+                    plain = im.mode == "RGB" and im.format == "PNG"
+                    if im.size != (W, H):
+                        raise BundleError(f"{path}: {im.size[0]}x{im.size[1]}, expected {W}x{H}")
+                    rgb = None if plain else np.asarray(im.convert("RGB"))
+            except (OSError, UnidentifiedImageError) as exc:
+                raise BundleError(f"{path}: cannot be read ({exc}); extract the archive again") from None
+            if rgb is None:
+                _link(path, out / name)
+            else:
+                Image.fromarray(rgb).save(out / name)
+        return
+    video = src / B.VIDEO_FILE
+    if not video.is_file():
+        raise BundleError(f"{src}: neither frames/ nor video.mp4; extract the archive again")
+    frames = read_video(video).frames
+    if frames.shape[0] < T or frames.shape[1:3] != (H, W):
+        raise BundleError(f"{video}: {frames.shape[0]} frames of {frames.shape[2]}x{frames.shape[1]}, expected {T} "
+                          f"of {W}x{H}")
+    frames = frames[:T]
+    for name, frame in zip(names, frames):
+        Image.fromarray(frame).save(out / name)
+
+
+def _link(src: Path, dst: Path) -> None:
+    """Hard link (no extra disk); a symbolic link to the absolute path across file systems."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        os.symlink(src.resolve(), dst)
+
+
+def _video(src: Path, dst: Path, T: int, W: int, H: int, fps: float) -> str:
+    """dst/video.mp4: the published H.264 file linked when it has the T frames, else encoded from dst/frames."""
+    from PIL import Image
+
+    published = src / B.VIDEO_FILE
+    if published.is_file():
+        try:
+            info = probe_video(published)
+            if info.codec == "h264" and (info.width, info.height) == (W, H) and len(info.times_s) == T:
+                _link(published, dst / B.VIDEO_FILE)
+                return "linked"
+        except VideoError:
+            pass
+    frames = np.stack([np.asarray(Image.open(dst / B.FRAMES_DIR / B.frame_name(k)).convert("RGB")) for k in range(T)])
+    if W % 2 or H % 2:
+        raise BundleError(f"{src}: {W}x{H} frames cannot be encoded as H.264 4:2:0 (odd size)")
+    write_video(dst / B.VIDEO_FILE, frames, fps=fps)
+    return "encoded"
+
+
+def _contacts(raw: Any, names: list[str], T: int, where: Path) -> dict:
+    if not isinstance(raw, list):
+        raise BundleError(f"{where}: expected a list of contacts; is this the published set?")
+    out = []
+    for c in raw:
+        try:
+            frame, a, b = int(c["frame"]), str(c["obj_a"]), str(c["obj_b"])
+            pts = [tuple(float(v) for v in p["point"]) for p in c.get("contacts", [])][:5]
+            normals = [tuple(float(v) for v in p["normal"]) for p in c.get("contacts", [])][:5]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise BundleError(f"{where}: malformed contact {c!r} ({exc!r})") from None
+        if 0 <= frame < T and a in names:
+            out.append({"frame": frame, "a": a, "b": b, "points_m": [list(p) for p in pts],
+                        "normals": [list(n) for n in normals], "distances_m": [0.0] * len(pts)})
+    return {"frames": T, "tolerance_m": None, "contacts": out,
+            "method": "published set: BVH face overlap of the two meshes per frame (normals of body b's faces)"}
+
+
+def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=None,
+                   dataset: dict | None = None) -> dict:
+    """Write the bundle of one published sample ``src`` into the empty folder ``dst``; returns its metadata."""
+    meta = _read_json(src / "metadata.json")
+    if not isinstance(meta, dict) or "task_type" not in meta:
+        raise BundleError(f"{src / 'metadata.json'}: no task_type; is this a sample of the published set?")
+    merged = {**row, **meta}
+    masks_npz = _read_npz(src / "masks.npz", ("masks", "object_names"))
+    masks = masks_npz["masks"].astype(bool)
+    names = [str(n) for n in masks_npz["object_names"]]
+    if masks.ndim != 4 or masks.shape[1] != len(names):
+        raise BundleError(f"{src / 'masks.npz'}: masks {masks.shape} do not match {len(names)} object names")
+    T, N, H, W = masks.shape
+    K, R_c, t_c, W_meta, H_meta = _camera(meta, src / "metadata.json")
+    if (W_meta, H_meta) != (W, H):
+        raise BundleError(f"{src}: camera says {W_meta}x{H_meta}, masks are {W}x{H}")
+    actors = meta.get("actors") or {}
+    roles = [str((actors.get(n) or {}).get("role", "")) for n in names]
+    if any(r not in ("active", "passive") for r in roles) or "active" not in roles:
+        raise BundleError(f"{src / 'metadata.json'}: actors {names} have roles {roles}; expected active/passive with "
+                          "at least one active")
+    render = meta.get("render") or {}
+    fps = float(render.get("fps", 24))
+    depth_raw = _read_npz(src / "depth.npz", ("depth",))["depth"]
+    if depth_raw.shape != (T, H, W):
+        raise BundleError(f"{src / 'depth.npz'}: depth {depth_raw.shape}, expected ({T}, {H}, {W})")
+    traj_npz = _read_npz(src / "trajectories.npz")
+    try:
+        positions = np.stack([traj_npz[f"{n}_positions"] for n in names]).astype(np.float64)
+        quats = np.stack([traj_npz[f"{n}_rotations"] for n in names]).astype(np.float64)
+    except KeyError as exc:
+        raise BundleError(f"{src / 'trajectories.npz'}: no {exc.args[0]}; is this the published set?") from None
+    if positions.shape != (N, T, 3) or quats.shape != (N, T, 4):
+        raise BundleError(f"{src / 'trajectories.npz'}: positions {positions.shape} / rotations {quats.shape}, "
+                          f"expected ({N},{T},3) / ({N},{T},4)")
+    quats /= np.linalg.norm(quats, axis=-1, keepdims=True)
+    traj = Trajectory(names=tuple(names), roles=tuple(roles), fps=fps, positions_m=positions, quat_wxyz=quats)
+    rule = TRACK_RULES["published"]
+    tracks = ground_truth_tracks(masks, depth_raw.astype(np.float64), K, R_c, t_c, quat_to_matrix(traj.quat_wxyz),
+                                 positions, np.array([r == "active" for r in roles]), seed=int(meta.get("seed", 0)),
+                                 rule=rule)
+    prompt_path = src / "prompt.txt"
+    prompt = (prompt_path.read_text().strip() if prompt_path.is_file() else str(meta.get("prompt", "")).strip())
+    if not prompt:
+        raise BundleError(f"{src}: no prompt (prompt.txt or metadata prompt)")
+
+    _frames(src, dst, T, W, H)
+    video = _video(src, dst, T, W, H, fps)
+    depth = depth_raw.astype(np.float32, copy=True)
+    missing_depth = [int(t) for t in np.nonzero((depth_raw <= 0).all(axis=(1, 2)))[0]]
+    depth[(depth_raw >= NO_HIT_DEPTH) | (depth_raw <= 0) | ~np.isfinite(depth_raw)] = np.inf
+    B.write_masks(dst / B.MASKS_FILE, masks, tuple(names), tuple(roles))
+    B.write_depth(dst / B.DEPTH_FILE, depth)
+    traj.save(dst / B.TRAJECTORIES_FILE)
+    contacts_path = src / "contacts.json"
+    contacts = _contacts(_read_json(contacts_path), names, T, contacts_path) if contacts_path.is_file() else \
+        {"frames": T, "tolerance_m": None, "contacts": [], "method": "not in the published sample"}
+    B.write_json(dst / B.CONTACTS_FILE, contacts)
+    tracks.save(dst / B.TRACKS_FILE)
+    (dst / B.PROMPT_FILE).write_text(prompt + "\n")
+    actor_rows = [{"name": n, "asset": (actors.get(n) or {}).get("object_id"), "role": r, "pass_index": k + 1,
+                   **_actor_physics((actors.get(n) or {}).get("object_id"), registry)}
+                  for k, (n, r) in enumerate(zip(names, roles))]
+    partition = str(merged.get("split", "")).replace("-", "_")
+    out = {
+        "bundle_version": B.BUNDLE_VERSION, "sample_id": sample_id, "split": "eval", "task": str(meta["task_type"]),
+        "scene": merged.get("scene_id"), "surface": merged.get("surface", merged.get("surface_name")),
+        "seed": merged.get("seed"), "partition": partition, "prompt": prompt,
+        "task_rotation_deg": meta.get("task_angle"), "camera_azimuth_deg": meta.get("camera_azimuth"),
+        "footprint_m": meta.get("footprint"), "actors": actor_rows, "actor_names": names, "roles": roles,
+        "active_indices": [k for k, r in enumerate(roles) if r == "active"],
+        "camera": {"intrinsics_K": K.tolist(), "camera_to_world_blender": cm.pose_matrix(R_c, t_c).tolist(),
+                   "world_to_camera_cv": cm.world_to_camera_cv(R_c, t_c).tolist(),
+                   "pixel_convention": PUBLISHED_PIXEL_CONVENTION},
+        "resolution": [W, H], "fps": fps, "frames": T, "simulated_frames": int(meta.get("frames", T)),
+        "depth": B.DEPTH_CONVENTION + " (imported: 1e10 and 0 became +inf)", "depth_missing_frames": missing_depth,
+        "preset": None, "render": {"published": render, "video": video},
+        "software": {"rigidbench_import": __version__},
+        "tracks": {"points_per_actor": POINTS_PER_ACTOR, "depth_tolerance": DEPTH_TOLERANCE, **rule.facts(),
+                   "sampled": [int(n) for n in tracks.points_per_actor]},
+        "source": {**(dataset or {}), "sample_digest": source_digest(src), "original_metadata": meta,
+                   "manifest_row": row or None},
+    }
+    B.write_json(dst / B.METADATA_FILE, out)
+    return out
+
+
+# -- the import ---------------------------------------------------------------------------------
+
+
+def _is_current(final: Path, digest: str) -> bool:
+    try:
+        meta = json.loads((final / B.METADATA_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and (meta.get("source") or {}).get("sample_digest") == digest \
+        and not B.check_bundle(final, check_video=False)
+
+
+def _replace(tmp: Path, final: Path) -> None:
+    """Move a complete bundle into place, replacing an outdated one."""
+    if final.exists():
+        old = final.with_name(f".{final.name}.old")
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(final, old)
+        os.replace(tmp, final)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, final)
+
+
+def dataset_identity(desc=None, *, verified: bool = False) -> dict:
+    """The ``source`` facts of a dataset description (``datasets.describe.DatasetDescription``)."""
+    if desc is None:
+        return {"dataset": "unknown", "version": None, "md5": None, "md5_verified": False}
+    return {"dataset": desc.name, "version": desc.version, "md5": desc.md5, "md5_verified": bool(verified),
+            "doi": getattr(desc, "doi", None), "license": getattr(desc, "license", None)}
+
+
+def import_published(src: str | Path, data: str | Path, *, dataset: dict | None = None, registry=None,
+                     ids: list[str] | None = None, progress: bool = True,
+                     on_sample: Callable[[str, str], None] | None = None) -> ImportSummary:
+    """Convert every published sample under ``src`` into ``data/eval/<id>/``; ``dataset`` is the identity
+    recorded in each bundle's ``source`` (``dataset_identity``). Resumable; per-sample failures are
+    collected in the summary, never raised."""
+    from tqdm import tqdm
+
+    root = find_published_root(Path(src))
+    samples = published_samples(root)
+    if ids:
+        unknown = sorted(set(ids) - {s[0] for s in samples})
+        if unknown:
+            raise UserError(f"unknown sample id(s) {', '.join(unknown)} in {root}")
+        samples = [s for s in samples if s[0] in set(ids)]
+    split_dir = Path(data) / "eval"
+    split_dir.mkdir(parents=True, exist_ok=True)
+    if split_dir.resolve() == (root / "eval").resolve():
+        raise UserError(f"--data {data}: the published set itself is there; import into another folder")
+    summary = ImportSummary(root=root, split_dir=split_dir)
+    for stale in split_dir.glob(".*.tmp"):
+        shutil.rmtree(stale, ignore_errors=True)
+    for sample_id, folder, row in tqdm(samples, unit="sample", desc="import", disable=not progress):
+        final = split_dir / sample_id
+        try:
+            digest = source_digest(folder)
+            if final.exists() and _is_current(final, digest):
+                summary.unchanged.append(sample_id)
+                continue
+            tmp = B.prepare_tmp(final)
+            try:
+                convert_sample(folder, tmp, sample_id, row, registry=registry, dataset=dataset)
+                problems = B.check_bundle(tmp)
+                if problems:
+                    raise BundleError(f"{folder}: the imported bundle fails its check: {'; '.join(problems[:3])}")
+                _replace(tmp, final)
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+            summary.imported.append(sample_id)
+        except EXAMPLE_ERRORS as exc:
+            summary.failed[sample_id] = str(exc)
+            log.warning("sample %s not imported: %s", sample_id, exc)
+        except (ValueError, KeyError, TypeError) as exc:  # a malformed published file we did not foresee
+            summary.failed[sample_id] = f"{folder}: cannot be converted ({exc!r}); extract the archive again"
+            log.warning("sample %s not imported: %r", sample_id, exc)
+        if on_sample is not None:
+            on_sample(sample_id, "failed" if sample_id in summary.failed else "done")
+    return summary
+
+
+__all__ = ["ImportSummary", "import_published", "convert_sample", "find_published_root", "is_published_root",
+           "is_published_sample", "published_samples", "source_digest", "dataset_identity",
+           "NO_HIT_DEPTH", "PUBLISHED_PIXEL_CONVENTION"]
