@@ -6,14 +6,32 @@
 
 The prompt is the task prompt followed by the paper's fixed suffix (appendix B.1); the negative
 prompt is the paper's, verbatim, for models that accept one.
+
+``Benchmark.load`` reads our renders and bundles made by ``rigidbench import`` from the published
+evaluation set alike, given a split directory (``data/eval``) or a data root holding one
+(``data``). A folder still in the published archive's own layout is refused with the command that
+converts it. ``write_inputs`` writes ``inputs.jsonl`` with the keys of the authors' release
+(``id``, ``image`` relative to the file's folder, ``scene_prompt``, ``prompt``, ``negative_prompt``,
+``duration_seconds``, ``reference_fps``, ``reference_frames``, ``reference_resolution``, ``task``,
+``protocol``) beside ours (``partition``, ``task_prompt``), so a generation script written for the
+release runs unchanged.
+
+Standard library only: ``import rigidbench`` imports this module.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+import os
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
+
+from .errors import BundleError
+from .groundtruth.layout import (SAMPLE_WHAT, PublishedLayoutError, check_not_published_layout,  # noqa: F401
+                                 find_published_layout, is_published_metadata, published_layout_message,
+                                 sample_dirs)
 
 PROMPT_SUFFIX = (
     "Static shot, locked-off camera, fixed tripod, stationary framing. No camera movement, no pan, no tilt, "
@@ -29,6 +47,17 @@ NEGATIVE_PROMPT = (
     "jump cut, montage, transition, multiple shots, text, watermark, low quality, low resolution"
 )
 
+#: The evaluation protocol's name, as the authors' release writes it into inputs.jsonl.
+PROTOCOL = "rigidbench-v1"
+#: The file `rigidbench inputs` writes.
+INPUTS_FILE = "inputs.jsonl"
+#: What a bundle whose metadata.json does not say is assumed to hold (the paper preset; video.REFERENCE_*).
+DEFAULT_FPS = 24.0
+DEFAULT_FRAMES = 49
+DEFAULT_RESOLUTION = (1280, 704)
+
+_FIRST_FRAME = Path("frames") / "00000.png"
+
 
 def full_prompt(task_prompt: str) -> str:
     return f"{task_prompt.strip()} {PROMPT_SUFFIX}"
@@ -42,43 +71,117 @@ class Example:
     negative_prompt: str
     task: str
     partition: str
-    task_prompt: str
+    task_prompt: str  # the task prompt without the suffix (the release calls it scene_prompt)
+    reference_fps: float = DEFAULT_FPS
+    reference_frames: int = DEFAULT_FRAMES
+    reference_resolution: tuple[int, int] = DEFAULT_RESOLUTION  # (W, H)
+    protocol: str = PROTOCOL
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["image"] = str(self.image)
-        return d
+    @property
+    def scene_prompt(self) -> str:
+        """The release's name for the task prompt without the suffix."""
+        return self.task_prompt
+
+    @property
+    def duration_seconds(self) -> float:
+        """Seconds from the first to the last reference frame, (frames - 1) / fps: 2.0 for 49 frames at 24 fps."""
+        return (self.reference_frames - 1) / self.reference_fps
+
+    def to_dict(self, relative_to: str | Path | None = None) -> dict[str, Any]:
+        """One inputs.jsonl row: the release's keys, then ours.
+
+        ``image`` is a POSIX path relative to ``relative_to`` (the folder of the inputs file) when the
+        frame lies below it, else absolute; without ``relative_to`` it is the path as loaded.
+        """
+        fps = self.reference_fps
+        return {"id": self.id, "image": _image_path(self.image, relative_to), "scene_prompt": self.scene_prompt,
+                "prompt": self.prompt, "negative_prompt": self.negative_prompt,
+                "duration_seconds": self.duration_seconds,
+                "reference_fps": int(fps) if float(fps).is_integer() else fps,
+                "reference_frames": self.reference_frames, "reference_resolution": list(self.reference_resolution),
+                "task": self.task, "protocol": self.protocol, "partition": self.partition,
+                "task_prompt": self.task_prompt}
+
+
+def _image_path(image: Path, folder: str | Path | None) -> str:
+    """Links are not followed: an imported bundle's frame linked into the extracted archive stays
+    ``eval/<id>/frames/00000.png``."""
+    if folder is None:
+        return str(image)
+    absolute = Path(os.path.abspath(image))
+    try:
+        return absolute.relative_to(os.path.abspath(folder)).as_posix()
+    except ValueError:
+        return str(absolute)
+
+
+# -- the published archive's own layout ----------------------------------------------------------
+
+
+# -- loading -------------------------------------------------------------------------------------
+
+
+def _reference_facts(meta: dict, meta_path: Path) -> tuple[float, int, tuple[int, int]]:
+    try:
+        fps = float(meta.get("fps", DEFAULT_FPS))
+        frames = int(meta.get("frames", DEFAULT_FRAMES))
+        width, height = (int(v) for v in meta.get("resolution", DEFAULT_RESOLUTION))
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{meta_path}: fps, frames or resolution malformed ({exc})") from None
+    if fps <= 0 or frames < 1 or width <= 0 or height <= 0:
+        raise BundleError(f"{meta_path}: implausible fps {fps}, frames {frames} or resolution {width}x{height}")
+    return fps, frames, (width, height)
+
+
+def _load_example(sample_dir: Path) -> Example:
+    meta_path = sample_dir / "metadata.json"
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise BundleError(f"{meta_path}: cannot read ({exc})") from None
+    if is_published_metadata(meta):
+        raise PublishedLayoutError(published_layout_message(sample_dir.parent, SAMPLE_WHAT))
+    prompt = meta.get("prompt")
+    if prompt is None and (sample_dir / "prompt.txt").is_file():
+        prompt = (sample_dir / "prompt.txt").read_text().strip()
+    if not prompt or "task" not in meta:
+        raise BundleError(f"{meta_path}: no prompt or task; re-render or re-import example {sample_dir.name}")
+    image = sample_dir / _FIRST_FRAME
+    if not image.exists():
+        raise FileNotFoundError(f"{image}: the first frame of example {sample_dir.name} is missing; "
+                                "re-render (or re-import) this example")
+    fps, frames, resolution = _reference_facts(meta, meta_path)
+    return Example(id=sample_dir.name, image=image, prompt=full_prompt(prompt), negative_prompt=NEGATIVE_PROMPT,
+                   task=meta["task"], partition=meta.get("partition", ""), task_prompt=prompt.strip(),
+                   reference_fps=fps, reference_frames=frames, reference_resolution=resolution)
 
 
 class Benchmark:
-    """The examples of one rendered split directory (``data/eval`` holds the 100 evaluation examples)."""
+    """The examples of one split directory (``data/eval`` holds the 100 evaluation examples)."""
 
     def __init__(self, root: Path, examples: list[Example]):
         self.root = root
         self.examples = examples
 
     @classmethod
-    def load(cls, data_dir: str | Path) -> "Benchmark":
+    def load(cls, data_dir: str | Path, split: str = "eval") -> "Benchmark":
+        """data_dir: a split directory (``data/eval``: one bundle per subdirectory) or a data root holding
+        ``split`` (``data``). Renders and imported bundles alike; the published layout is refused."""
         root = Path(data_dir)
         if not root.is_dir():
             raise FileNotFoundError(f"{root}: no rendered examples here; run `rigidbench render --split eval "
                                     f"--data {root.parent if root.name in ('eval', 'train') else root}` first")
-        examples = []
-        for sample_dir in sorted(p for p in root.iterdir() if p.is_dir()):
-            meta_path = sample_dir / "metadata.json"
-            if not meta_path.exists():
-                continue  # an unfinished render; complete bundles always carry metadata.json
-            meta = json.loads(meta_path.read_text())
-            image = sample_dir / "frames" / "00000.png"
-            if not image.exists():
-                raise FileNotFoundError(f"{image}: the first frame of example {sample_dir.name} is missing; "
-                                        "re-render this example")
-            examples.append(Example(id=sample_dir.name, image=image, prompt=full_prompt(meta["prompt"]),
-                                    negative_prompt=NEGATIVE_PROMPT, task=meta["task"],
-                                    partition=meta["partition"], task_prompt=meta["prompt"]))
-        if not examples:
-            raise FileNotFoundError(f"{root}: no rendered examples (directories with metadata.json) found")
-        return cls(root, examples)
+        check_not_published_layout(root)
+        bundles = list(sample_dirs(root))
+        split_dir = root
+        if not bundles:
+            split_dir = root / split
+            bundles = list(sample_dirs(split_dir))
+        if not bundles:
+            raise FileNotFoundError(f"{root}: no examples (directories with metadata.json) here or in "
+                                    f"{root / split}; render them with `rigidbench render --split {split}` or "
+                                    f"import the published set with `rigidbench import`")
+        return cls(split_dir, [_load_example(d) for d in bundles])
 
     def __iter__(self) -> Iterator[Example]:
         return iter(self.examples)
@@ -94,10 +197,24 @@ class Benchmark:
 
 
 def write_inputs(data_dir: str | Path, out: str | Path | None = None) -> Path:
-    """Write inputs.jsonl (one example per line) for model runners in any language."""
+    """Write inputs.jsonl (one example per line) for model runners in any language; returns its path.
+
+    data_dir: as for ``Benchmark.load``; out defaults to ``data_dir/inputs.jsonl``. Each row's
+    ``image`` is relative to the file's own folder (absolute when the frame is not below it). The
+    file is replaced atomically.
+    """
     bench = Benchmark.load(data_dir)
-    out = Path(out) if out else Path(data_dir) / "inputs.jsonl"
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text("".join(json.dumps(ex.to_dict()) + "\n" for ex in bench))
-    tmp.replace(out)
+    out = Path(out) if out else Path(data_dir) / INPUTS_FILE
+    out.parent.mkdir(parents=True, exist_ok=True)
+    text = "".join(json.dumps(ex.to_dict(relative_to=out.parent), ensure_ascii=False) + "\n" for ex in bench)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; inputs.jsonl is for any model runner
+        tmp.replace(out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return out

@@ -26,7 +26,8 @@ def _selected_ids(args) -> list[str] | None:
 
 
 def _split_dir(args) -> Path:
-    """The reference split directory ``--data`` (and ``--split``) name; BundleError with a did-you-mean."""
+    """The reference split directory ``--data`` (and ``--split``) name; BundleError with a did-you-mean, or
+    naming `rigidbench import` when ``--data`` is in the published archive's own layout."""
     from .groundtruth.bundle import resolve_split_dir
 
     return resolve_split_dir(args.data, getattr(args, "split", None))
@@ -118,7 +119,7 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
     executor, shard = executor_from(args)
     summary = evaluate(args.predictions, _split_dir(args), out, perception=args.perception, ids=_selected_ids(args),
                        limit=args.limit, model=args.model, perception_options=options, executor=executor, shard=shard,
-                       device=ctx.device, protocol=args.protocol)
+                       device=ctx.device, protocol=args.protocol, first_frame_check=not args.no_first_frame_check)
     overall = summary.results["overall"]
     dataset = summary.results.get("dataset", {})
     print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
@@ -412,6 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", choices=("rigidbench-v1", "lossless"), default="rigidbench-v1",
                    help="rigidbench-v1: the published evaluator's rules, comparable with the paper (generated frames "
                         "go through JPEG q95 4:4:4 after resizing); lossless: no JPEG round trip (docs/metrics.md)")
+    p.add_argument("--no-first-frame-check", action="store_true",
+                   help="score predictions whose first frame is not their reference's (normally refused as made from "
+                        "another set's inputs); recorded in results.json")
     add_executor_arguments(p)
     p.add_argument("--ids", nargs="+", metavar="ID")
     p.add_argument("--limit", type=int)

@@ -3,7 +3,8 @@
 Fast and CPU only: it reads container metadata and demuxed packet timestamps, and decodes just
 the first frame of each file, so a hundred clips validate in seconds. Blocking errors (a missing
 example, an undecodable file, a clip that does not cover the reference span, duplicate files for
-one example) give a non-zero exit code; warnings (extra files, an aspect ratio that resizing
+one example, a first frame that is not the reference's first frame, a reference folder still in the
+published archive's layout) give a non-zero exit code; warnings (extra files, an aspect ratio that resizing
 will distort, header frame rate disagreeing with the timestamps) do not.
 """
 
@@ -12,7 +13,13 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Mapping
 
+import numpy as np
+
+from rigidbench.benchmark import find_published_layout, is_published_metadata, published_layout_message
+from rigidbench.firstframe import (MISMATCH_KIND, check_first_frame, mismatch_message, read_first_frame,
+                                   read_reference_first_frame)
 from rigidbench.perception.gt import STATE_SUFFIX
 from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, VIDEO_EXTENSIONS, VideoError,
                               VideoInfo, check_decodable, probe_video)
@@ -37,6 +44,8 @@ class ReferenceSpec:
     height: int
     fps: float
     frames: int
+    #: metadata["source"] of an imported bundle (dataset name, version, ...); None for our renders
+    source: Mapping[str, Any] | None = field(default=None, compare=False)
 
     @property
     def span_s(self) -> float:
@@ -100,6 +109,10 @@ def read_reference_specs(data_dir: Path, report: ValidationReport, *, ref_fps: f
             report.add(ERROR, "bad_metadata", f"{meta_path}: cannot read ({exc}); re-render this sample",
                        example_id, meta_path)
             continue
+        if is_published_metadata(meta):
+            report.add(ERROR, "published_layout", published_layout_message(
+                meta_path.parent, "metadata.json with task_type and no sample_id"), example_id, meta_path)
+            continue
         try:
             width, height = (int(v) for v in meta.get("resolution", REFERENCE_SIZE))
             fps = float(meta.get("fps", ref_fps))
@@ -112,7 +125,8 @@ def read_reference_specs(data_dir: Path, report: ValidationReport, *, ref_fps: f
             report.add(ERROR, "bad_metadata", f"{meta_path}: implausible resolution {width}x{height}, "
                        f"fps {fps} or frames {frames}", example_id, meta_path)
             continue
-        report.references[example_id] = ReferenceSpec(example_id, width, height, fps, frames)
+        source = meta.get("source") if isinstance(meta.get("source"), dict) else None
+        report.references[example_id] = ReferenceSpec(example_id, width, height, fps, frames, source)
 
 
 def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, list[Path]], dict[str, list[Path]]]:
@@ -158,15 +172,21 @@ def check_file(info: VideoInfo, ref: ReferenceSpec, report: ValidationReport) ->
 
 
 def validate_predictions(pred_dir: str | Path, data_dir: str | Path, *, ref_fps: float = REFERENCE_FPS,
-                         ref_frames: int = REFERENCE_FRAMES) -> ValidationReport:
+                         ref_frames: int = REFERENCE_FRAMES, first_frames: bool = True) -> ValidationReport:
     """pred_dir: <id>.<ext> clips; data_dir: <id>/metadata.json samples. Returns the ValidationReport.
 
     ref_fps and ref_frames are used for samples whose metadata.json gives no "fps" or "frames".
+    first_frames=False skips the first-frame comparison (for randomly initialised test models, whose
+    first frame is noise); the command line always makes it.
     """
     pred_dir, data_dir = Path(pred_dir), Path(data_dir)
     report = ValidationReport(pred_dir=pred_dir, data_dir=data_dir)
     if not data_dir.is_dir():
         report.add(ERROR, "no_data", f"data directory {data_dir} does not exist; render it with `rigidbench render`")
+        return report
+    published = find_published_layout(data_dir)
+    if published is not None:  # one error for the folder, not one per sample (and never an "OK")
+        report.add(ERROR, "published_layout", published_layout_message(*published), None, published[0])
         return report
     read_reference_specs(data_dir, report, ref_fps=ref_fps, ref_frames=ref_frames)
     if not report.references:
@@ -196,7 +216,34 @@ def validate_predictions(pred_dir: str | Path, data_dir: str | Path, *, ref_fps:
             report.files[path] = info
             report.matched.setdefault(example_id, path)
             check_file(info, ref, report)
+            if first_frames:
+                check_first_frame_of(path, ref, data_dir, report)
     return report
+
+
+def check_first_frame_of(path: Path, ref: ReferenceSpec, data_dir: Path, report: ValidationReport) -> None:
+    """Adds a first_frame_mismatch error when the prediction at ``path`` does not start from its reference's
+    first frame (generated from another set's inputs). A reference without a first frame (no frames/00000.png
+    and no video.mp4) is not compared."""
+    ref_first = _reference_first_frame(data_dir / ref.example_id)
+    if ref_first is None:
+        return
+    try:
+        pred_first = read_first_frame(path)
+    except VideoError as exc:
+        report.add(ERROR, "undecodable", f"{path.name}: {exc.reason}", ref.example_id, path)
+        return
+    matches, score = check_first_frame(pred_first, ref_first)
+    if not matches:
+        report.add(ERROR, MISMATCH_KIND, mismatch_message(path, ref.example_id, data_dir, {"source": ref.source},
+                                                          score), ref.example_id, path)
+
+
+def _reference_first_frame(bundle_dir: Path) -> np.ndarray | None:
+    try:
+        return read_reference_first_frame(bundle_dir)
+    except (OSError, ValueError, VideoError):
+        return None  # an unreadable reference frame is check_bundle's to report, not a prediction's fault
 
 
 def format_report(report: ValidationReport) -> str:

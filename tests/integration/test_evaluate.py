@@ -57,6 +57,30 @@ def test_reference_against_itself_is_perfect(data_dir, tmp_path):
     assert run["perception"]["backend"] == "gt" and len(run["data_hash"]) == 64
 
 
+def test_predictions_from_our_rendered_set_are_refused_against_the_published_set(data_dir, tmp_path):
+    """The same ids name different scenes in our renders and in the published set: evaluate must refuse
+    every example by the first-frame check, naming both sets, instead of scoring the wrong scene."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
+    import published_set as ps
+
+    from rigidbench.datasets.importer import import_published
+
+    published = [ps.PublishedSample(i, "free_fall", "modern_loft", "in_distribution", 11 + k, "apple")
+                 for k, i in enumerate(("00015", "00020"))]
+    ps.write_set(tmp_path / "published", published)
+    assert import_published(tmp_path / "published", tmp_path / "imported", progress=False).ok
+    preds = tmp_path / "predictions" / "reference"
+    predict("reference", data_dir, preds, PredictContext(), progress=False)
+    summary = evaluate(preds, tmp_path / "imported", tmp_path / "runs" / "mixed", nets=FeatureNets(), progress=False)
+    assert sorted(summary.failed) == ["00015", "00020"] and not summary.evaluated
+    assert "first frame does not match" in summary.failed["00015"] and "imported" in summary.failed["00015"]
+    # ...while the same predictions against their own set pass the check
+    assert not evaluate(preds, data_dir, tmp_path / "runs" / "own", nets=FeatureNets(), progress=False).failed
+
+
 def test_unchanged_inputs_are_reused_and_changed_ones_recomputed(data_dir, tmp_path):
     first = _run(data_dir, tmp_path, "reference")
     second = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(),

@@ -33,9 +33,9 @@ def broken_metric(x) -> MetricResult:
 
 
 def inverted(sample, ctx):
-    """The reference with inverted colours; the world state it shows is the reference's."""
+    """The reference with inverted colours after its first frame; the world state it shows is the reference's."""
     pred = reference(sample, 0.0)
-    pred.frames = 255 - pred.frames
+    pred.frames[1:] = 255 - pred.frames[1:]
     return pred
 
 
@@ -56,17 +56,20 @@ def test_a_registered_metric_and_predictor_appear_in_every_output(data_dir, tmp_
             preds = tmp_path / "predictions" / name
             run = predict(name, data_dir, preds, PredictContext(severity=0.0), progress=False)
             assert run.written == ["00015"] and not run.failed
-            summary = evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), progress=False)
+            summary = evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), progress=False,
+                               protocol="lossless")  # the toy metric is hand-computed on the decoded frames
             assert not summary.failed
             table[name] = [summary.results["overall"][m]["mean"] for m in METRICS]
             runs.append(summary.out_dir)
         record = json.loads((tmp_path / "runs" / "inverted" / "examples" / "00015.json").read_text())
         frames = np.load(tmp_path / "runs" / "inverted" / "examples" / "00015.npz")["mad"]
-        # Hand-computed: inverting colours moves every channel value v to 255 - v, |v - (255 - v)| = |2v - 255|.
+        # Hand-computed: inverting colours moves every channel value v to 255 - v, |v - (255 - v)| = |2v - 255|
+        # (frame 0 is left as given, so the prediction passes the first-frame check).
         from rigidbench.groundtruth.bundle import Sample
 
         ref = Sample(data_dir / "00015").frames.astype(np.float64)
         expected = (np.abs(2 * ref - 255).mean(axis=(1, 2, 3)) / 255.0)
+        expected[0] = 0.0
         assert record["metrics"]["mad"] == pytest.approx(expected.mean(), rel=1e-9)
         np.testing.assert_allclose(frames, expected, rtol=1e-9)
         assert json.loads((tmp_path / "runs" / "reference" / "results.json").read_text())["overall"]["mad"]["mean"] == 0

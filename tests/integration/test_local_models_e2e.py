@@ -26,7 +26,7 @@ from rigidbench.groundtruth.bundle import Sample  # noqa: E402
 from rigidbench.metrics import METRICS  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
 from rigidbench.pipeline.predict import predict  # noqa: E402
-from rigidbench.predictors import PredictContext, model_inputs  # noqa: E402
+from rigidbench.predictors import PredictContext, example_seed, model_inputs  # noqa: E402
 from rigidbench.validate import validate_predictions  # noqa: E402
 from rigidbench.video import probe_video  # noqa: E402
 
@@ -72,13 +72,16 @@ def test_a_local_model_predicts_validates_and_scores(name, data_dir, tmp_path, o
     assert model["source"] == "injected" and model["num_inference_steps"] == 2 and model["fps"] == fps
     assert model["negative_prompt"] == NEGATIVE_PROMPT and "differs_from_paper" in model
     example = doc["examples"]["00015"]
-    assert example["status"] == "succeeded" and example["seed"] == 4 and example["seconds_model"] > 0
+    assert example["status"] == "succeeded" and example["seed"] == example_seed(4, "00015")  # from the base seed 4
+    assert example["seconds_model"] > 0
     assert example["prompt"] == model_inputs(Sample(data_dir / "00015")).prompt
     if name == "cosmos-2.5":
         assert model["guardrail"] == "pass-through (--no-guardrail)" and "NVIDIA Open Model License" in model["licence_notice"]
         assert doc["settings"]["guardrail"] == "pass-through (--no-guardrail)"
 
-    report = validate_predictions(preds, data_dir)
+    # a tiny randomly initialised model does not reproduce the first frame it is given (its VAE is random),
+    # so the first-frame check that guards against mixing sets is off for it
+    report = validate_predictions(preds, data_dir, first_frames=False)
     assert report.ok and not report.errors and "00015" in report.matched
 
     # a rerun with the same settings skips the finished example
@@ -87,8 +90,9 @@ def test_a_local_model_predicts_validates_and_scores(name, data_dir, tmp_path, o
     models = tiny_perception.tiny_models()
     summary = evaluate(preds, data_dir, tmp_path / "runs" / name, perception="neural",
                        perception_options={"models": models, "depth_input_size": 56, "device": "cpu"},
-                       nets=FeatureNets(), progress=False)
+                       nets=FeatureNets(), progress=False, first_frame_check=False)
     assert not summary.failed and summary.evaluated == ["00015"]
+    assert summary.results["protocol"]["first_frame_check"] is False
     record = json.loads((summary.out_dir / "examples" / "00015.json").read_text())
     assert record["perception"] == "neural" and set(record["metrics"]) == set(METRICS)
     m = record["metrics"]

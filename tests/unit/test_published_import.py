@@ -168,3 +168,15 @@ def test_commands_refuse_the_published_layout_with_the_import_hint(published, tm
     (tmp_path / "preds").mkdir()
     assert main(["evaluate", str(tmp_path / "preds"), "--data", str(published / "samples")]) == 2
     assert main(["validate", str(tmp_path / "preds"), "--data", str(published)]) == 2
+
+
+def test_commands_that_re_simulate_refuse_imported_bundles_up_front(imported, tmp_path, capsys):
+    from rigidbench.cli import main
+
+    data, _ = imported
+    assert main(["predict", "gravity", "--data", str(data), "--out", str(tmp_path / "p")]) == 2
+    assert "scene spec" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists() or not list((tmp_path / "p").glob("*.mp4"))
+    assert main(["validate-metrics", "--data", str(data), "--out", str(tmp_path / "v"), "--with-rendered",
+                 "--examples", "1", "--severities", "2"]) == 2
+    assert "scene spec" in capsys.readouterr().err

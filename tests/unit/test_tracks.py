@@ -139,3 +139,36 @@ def test_tracks_save_load_roundtrip(tmp_path):
     np.testing.assert_array_equal(a.tracks_px, b.tracks_px)
     np.testing.assert_array_equal(a.visibility, b.visibility)
     assert b.actor_index.dtype == np.int64
+
+
+def test_published_rule_erodes_by_a_diamond_and_falls_back_to_the_mask():
+    m = np.zeros((30, 30), bool)
+    m[5:20, 5:20] = True  # 15x15: the cross eroded 3 times keeps the 9x9 core
+    pool = gt.erode_cross(m, 3)
+    assert pool[8:17, 8:17].all() and pool.sum() == 81
+    assert gt.erode_cross(np.abs(np.indices((30, 30)) - 15).sum(0) <= 5, 3).sum() == 13  # L1 ball 5 -> L1 ball 2
+    rule = gt.TRACK_RULES["published"]
+    q = gt.sample_query_pixels(m, 20, np.random.default_rng(42), rule=rule)
+    assert pool[q[:, 1], q[:, 0]].all() and len(q) == 20
+    small = np.zeros((30, 30), bool)
+    small[10:15, 10:15] = True  # 5x5: nothing survives, so all 20 points come from the mask itself
+    q = gt.sample_query_pixels(small, 20, np.random.default_rng(42), rule=rule)
+    assert len(q) == 20 and small[q[:, 1], q[:, 0]].all()
+    assert len(gt.sample_query_pixels(small, 20, np.random.default_rng(42))) == 0  # our earlier rule: none
+
+
+def test_published_rule_seeds_every_actor_afresh():
+    m = np.zeros((40, 40), bool)
+    m[5:25, 5:25] = True
+    masks = np.stack([m, m])[None].repeat(2, axis=0)  # (T=2, N=2, H, W): two actors with the same mask
+    depth = np.full((2, 40, 40), 2.0, np.float32)
+    K = np.array([[40.0, 0, 20], [0, 40.0, 20], [0, 0, 1]])
+    rot = np.broadcast_to(np.eye(3), (2, 2, 3, 3))
+    pos = np.zeros((2, 2, 3))
+    pub = gt.ground_truth_tracks(masks, depth, K, np.eye(3), np.array([0, 0, 5.0]), rot, pos, np.array([True, True]),
+                                 seed=7, rule=gt.TRACK_RULES["published"])
+    a, b = pub.query_pixels[pub.actor_index == 0], pub.query_pixels[pub.actor_index == 1]
+    np.testing.assert_array_equal(a, b)  # a fresh generator seeded 42 per actor draws the same pixels
+    ours = gt.ground_truth_tracks(masks, depth, K, np.eye(3), np.array([0, 0, 5.0]), rot, pos, np.array([True, True]),
+                                  seed=7)
+    assert not np.array_equal(ours.query_pixels[ours.actor_index == 0], ours.query_pixels[ours.actor_index == 1])

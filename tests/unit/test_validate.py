@@ -149,3 +149,119 @@ def test_missing_directories_block(tmp_path):
     report = validate_predictions(tmp_path / "nope", data)
     assert [i.kind for i in report.errors] == ["no_predictions"]
     assert "BLOCKED" in format_report(report)
+
+
+# -- the first frame must be the reference's (no silent mixing of sets); the published layout is refused ---
+
+
+FRAME_SIZE = (128, 72)
+
+
+def scene_frame(seed: int) -> np.ndarray:
+    """(H,W,3) uint8: a blocky random scene; different seeds are unrelated examples."""
+    width, height = FRAME_SIZE
+    blocks = np.random.default_rng(seed).integers(0, 256, (height // 8, width // 8, 3))
+    return np.kron(blocks, np.ones((8, 8, 1))).astype(np.uint8)
+
+
+def make_bundles(root, seeds: dict, source=None):
+    """Reference bundles with a real first frame (frames/00000.png), as renders and imports write them."""
+    from PIL import Image
+
+    for example_id, seed in seeds.items():
+        (root / example_id / "frames").mkdir(parents=True)
+        Image.fromarray(scene_frame(seed)).save(root / example_id / "frames" / "00000.png")
+        meta = {"sample_id": example_id, "task": "bounce", "resolution": list(FRAME_SIZE), "fps": 24, "frames": 49}
+        if source is not None:
+            meta["source"] = source
+        (root / example_id / "metadata.json").write_text(json.dumps(meta))
+    return root
+
+
+def still_clip(frame: np.ndarray, n_frames: int = 49) -> np.ndarray:
+    return np.repeat(frame[None], n_frames, axis=0)
+
+
+def test_a_prediction_from_another_sets_first_frame_is_an_error(tmp_path):
+    data = make_bundles(tmp_path / "data" / "eval", {"00000": 0, "00001": 1, "00002": 2})
+    pred = tmp_path / "predictions" / "model"
+    pred.mkdir(parents=True)
+    write_video(pred / "00000.mp4", still_clip(scene_frame(0)), fps=24)  # its own first frame: fine
+    write_video(pred / "00001.mp4", still_clip(scene_frame(11)), fps=24)  # another set's example 00001
+    from PIL import Image
+
+    smaller = np.asarray(Image.fromarray(scene_frame(2)).resize((96, 54), Image.Resampling.LANCZOS))
+    write_video(pred / "00002.mp4", still_clip(smaller, 33), fps=16)  # its own frame at another size and rate
+    report = validate_predictions(pred, data)
+    mismatches = report.of_kind("first_frame_mismatch")
+    assert [(i.example_id, i.severity, i.path) for i in mismatches] == [("00001", ERROR, pred / "00001.mp4")]
+    assert [i.kind for i in report.errors] == ["first_frame_mismatch"] and not report.ok
+    message = mismatches[0].message
+    for part in ("00001.mp4", "reference example 00001", str(data), "rendered by rigidbench render",
+                 "another set's inputs", "regenerate", "inputs.jsonl"):
+        assert part in message, part
+    text = format_report(report)
+    assert "[first_frame_mismatch]" in text and "BLOCKED" in text and "OK: ready" not in text
+    assert validate_predictions(pred, data, first_frames=False).ok  # the opt-out for random test models
+
+
+def test_the_mismatch_names_an_imported_reference_sets_dataset_and_version(tmp_path):
+    source = {"dataset": "rigidbench-eval", "version": "1.1", "md5": "b563f279451e95fe2f32d7e258588636",
+              "original_metadata": {"task_type": "bounce"}}
+    data = make_bundles(tmp_path / "data-published" / "eval", {"00000": 0, "00001": 1}, source=source)
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "00000.mp4", still_clip(scene_frame(0)), fps=24)
+    write_video(pred / "00001.mp4", still_clip(scene_frame(0)), fps=24)  # 00000's frame under 00001's id
+    report = validate_predictions(pred, data)
+    assert report.references["00001"].source == source
+    (issue,) = report.errors
+    assert issue.kind == "first_frame_mismatch" and issue.example_id == "00001"
+    assert "dataset rigidbench-eval version 1.1" in issue.message and str(data) in issue.message
+    assert "rendered by rigidbench render" not in issue.message
+
+
+def published_sample(folder, sample_id):
+    """A sample folder as the authors published it: metadata.json with task_type and no sample_id."""
+    (folder / sample_id / "frames").mkdir(parents=True)
+    (folder / sample_id / "metadata.json").write_text(json.dumps(
+        {"task_type": "bounce", "scene_id": "loft", "split": "in-distribution", "seed": 3,
+         "render": {"fps": 24, "resolution": [64, 36]}}))
+
+
+def test_a_reference_folder_in_the_published_layout_is_one_clear_error(tmp_path, capsys):
+    from rigidbench.cli import main as cli_main
+
+    root = tmp_path / "rigidbench-eval-v1.1"
+    for k in range(3):
+        published_sample(root / "samples", f"{k:05d}")
+    (root / "manifest.json").write_text(json.dumps([{"sample_id": f"{k:05d}", "task_type": "bounce"}
+                                                    for k in range(3)]))
+    eval_layout = tmp_path / "published-eval"
+    published_sample(eval_layout / "eval", "00000")
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "00000.mp4", clip(49), fps=24)
+    for folder in (root, root / "samples", eval_layout, eval_layout / "eval", tmp_path):
+        report = validate_predictions(pred, folder)
+        assert [i.kind for i in report.issues] == ["published_layout"] and not report.ok, folder
+        assert "rigidbench import" in report.issues[0].message
+        assert main(pred, folder) == 1
+        out = capsys.readouterr().out
+        assert "BLOCKED" in out and "OK: ready" not in out and "rigidbench import" in out
+        assert cli_main(["validate", str(pred), "--data", str(folder)]) == 2  # one line on stderr
+        captured = capsys.readouterr()
+        assert "rigidbench import" in captured.out + captured.err and "Traceback" not in captured.err
+        assert "OK: ready" not in captured.out
+
+
+def test_a_published_sample_among_ours_is_an_error_for_that_sample(tmp_path):
+    data = make_bundles(tmp_path / "eval", {"00000": 0, "00001": 1, "00002": 2})
+    published_sample(data, "00003")  # sorts after the three bundles the folder check looks at
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    for k in range(3):
+        write_video(pred / f"{k:05d}.mp4", still_clip(scene_frame(k)), fps=24)
+    report = validate_predictions(pred, data)
+    assert [(i.kind, i.example_id) for i in report.errors] == [("published_layout", "00003")]
+    assert "00003" not in report.references and "rigidbench import" in report.errors[0].message

@@ -45,6 +45,7 @@ from ..errors import EXAMPLE_ERRORS, BundleError, UserError
 from ..groundtruth import bundle as B
 from ..groundtruth import camera_model as cm
 from ..groundtruth.contacts import quat_to_matrix
+from ..groundtruth.layout import is_published_metadata
 from ..groundtruth.tracks import DEPTH_TOLERANCE, POINTS_PER_ACTOR, TRACK_RULES, ground_truth_tracks
 from ..groundtruth.trajectory import Trajectory
 from ..video import VideoError, probe_video, read_video, write_video
@@ -94,14 +95,10 @@ def is_published_root(folder: Path) -> bool:
 
 def is_published_sample(folder: Path) -> bool:
     """A sample folder in the published layout (its metadata has ``task_type`` and no ``sample_id``)."""
-    meta = Path(folder) / "metadata.json"
-    if not meta.is_file():
-        return False
     try:
-        doc = json.loads(meta.read_text())
+        return is_published_metadata(json.loads((Path(folder) / "metadata.json").read_text()))
     except (OSError, ValueError):
         return False
-    return isinstance(doc, dict) and "task_type" in doc and "sample_id" not in doc
 
 
 def find_published_root(src: str | Path) -> Path:

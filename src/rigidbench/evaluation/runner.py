@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from ..errors import EXAMPLE_ERRORS, EvaluationError, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
+from ..firstframe import check_first_frame, mismatch_message
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity
 from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
@@ -67,7 +68,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
              ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
              model: str | None = None, progress: bool = True, perception_options: dict | None = None,
              executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None,
-             protocol: str | None = None) -> EvaluationSummary:
+             protocol: str | None = None, first_frame_check: bool = True) -> EvaluationSummary:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
     holding one split); writes out/examples/<id>.json and .npz, out/results.json and out/run.json.
 
@@ -77,7 +78,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     the examples (default: in this process); ``shard`` scores only its part of the selection (its
     results.json covers that part; a final run without ``shard`` reuses every example and aggregates).
     ``protocol`` names the evaluation protocol (``evaluation.protocol``; default ``rigidbench-v1``, the
-    published evaluator's rules)."""
+    published evaluator's rules). ``first_frame_check`` (default on) fails an example whose prediction does
+    not start from its reference's first frame (generated from another set's inputs); turning it off is
+    recorded in results.json."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
@@ -131,7 +134,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             todo.append({"id": sample_id, "key": key})
     job = {"pred_dir": str(pred_dir.resolve()), "data_dir": str(data_dir.resolve()), "out_dir": str(out_dir.resolve()),
            "model": model, "perception": perception, "perception_options": perception_options or {}, "device": device,
-           "protocol": rules.name}
+           "protocol": rules.name, "first_frame_check": first_frame_check}
     bar = tqdm(total=len(todo), unit="example", desc="evaluate", disable=not progress or not todo)
 
     def collect(item: dict, result: dict) -> None:
@@ -158,7 +161,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     official = (len(all_ids) == EVAL_SIZE and len(selected) == len(all_ids) and complete_ids == set(all_ids)
                 and not failed and not missing_metrics)
     skipped = {m: _skip_reason(records, m, nets) for m in missing_metrics}
-    results = {"model": model, "perception": backend.name, "protocol": rules.facts(),
+    results = {"model": model, "perception": backend.name,
+               "protocol": {**rules.facts(), "first_frame_check": first_frame_check},
                "dataset": set_identity(refs), "official": official, "metrics": list(metrics),
                "n_examples": len(records), "n_reference": len(all_ids), "failed": failed,
                "skipped_metrics": skipped, **aggregate(records, metrics)}
@@ -200,6 +204,7 @@ class EvaluateWorker:
             self.backend.use_cache_dir(self.out_dir / "cache" / self.backend.name)
         self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
         self.protocol = get_protocol(job.get("protocol"))
+        self.first_frame_check = bool(job.get("first_frame_check", True))
 
     def __call__(self, item: dict) -> dict:
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
@@ -209,14 +214,14 @@ class EvaluateWorker:
             if pred is None:
                 raise EvaluationError(f"{sample_id}: its prediction disappeared from {self.pred_dir}")
             record = _score_one(Sample(self.data_dir / sample_id), pred, self.backend, self.nets, self.model,
-                                item["key"], self.out_dir, timings, self.protocol)
+                                item["key"], self.out_dir, timings, self.protocol, self.first_frame_check)
         except EXAMPLE_ERRORS as exc:
             return failure_record(exc)
         return {"status": "succeeded", "record": record, "timings": timings}
 
 
 def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, out_dir: Path,
-               timings: dict[str, float], protocol: Protocol) -> dict:
+               timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True) -> dict:
     """Decode, perceive (cached by input key), align and score one example; writes its .npz and .json."""
     sample_id = sample.sample_id
     t0 = time.time()
@@ -227,6 +232,9 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     w, h = sample.resolution
     if video.size != (w, h):
         video.frames = resize_frames(video.frames, (w, h))
+    matches, correlation = check_first_frame(video.frames[0], sample.frame(0)) if first_frame_check else (True, None)
+    if not matches:  # generated from another set's inputs: refuse rather than score against the wrong scene
+        raise EvaluationError(mismatch_message(pred, sample_id, sample.path.parent, sample.metadata, correlation))
     video.frames = protocol.prepare(video.frames)
     timings["decode_s"] += time.time() - t0
     t0 = time.time()

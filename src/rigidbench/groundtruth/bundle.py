@@ -36,6 +36,8 @@ from ..errors import BundleError
 from ..spec.types import SceneSpec
 from ..video import VideoError, probe_video
 from . import camera_model as cm
+from .layout import SAMPLE_WHAT, PublishedLayoutError, check_not_published_layout, is_published_metadata, \
+    published_layout_message
 from .trajectory import Contact, Trajectory, load_contacts
 from .tracks import Tracks
 
@@ -62,29 +64,13 @@ def no_spec_message(sample_id: str) -> str:
             "re-simulated; use a bundle rendered with `rigidbench render` for this")
 
 
-def is_foreign_sample(path: Path) -> bool:
-    """A sample folder in the published archive's layout (metadata with ``task_type``, no ``sample_id``)."""
-    try:
-        meta = json.loads((Path(path) / METADATA_FILE).read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(meta, dict) and "task_type" in meta and "sample_id" not in meta
-
-
-def is_foreign_root(path: Path) -> bool:
-    """A data root in the published archive's layout (manifest.json + samples/, or eval/ of such samples)."""
-    path = Path(path)
-    if (path / "manifest.json").is_file() and (path / "samples").is_dir():
-        return True
-    for folder in (path, path / "eval"):
-        if folder.is_dir() and any(is_foreign_sample(d) for d in sorted(folder.iterdir())[:3] if d.is_dir()):
-            return True
-    return False
-
-
-def foreign_layout_message(path: Path) -> str:
-    return (f"{path}: this is the published evaluation set's own layout, which RigidBench commands do not read "
-            f"directly; convert it once with `rigidbench import {path} --data DIR` and pass --data DIR")
+def refuse_imported(bundle_dirs_: list[Path], what: str) -> None:
+    """BundleError (one line, before any work) when ``what`` needs scene specs and a bundle was imported."""
+    imported = [Path(d).name for d in bundle_dirs_ if _imported(Path(d)) and not (Path(d) / SPEC_FILE).is_file()]
+    if imported:
+        raise BundleError(f"{what}, which needs each example's scene spec; {len(imported)} of the selected examples "
+                          f"(e.g. {imported[0]}) were imported from the published set, which ships none. Use bundles "
+                          "rendered with `rigidbench render` for this")
 
 
 def frame_name(k: int) -> str:
@@ -196,8 +182,8 @@ class Sample:
         if not (self.path / METADATA_FILE).is_file():
             raise BundleError(f"{self.path}: not a sample bundle (no {METADATA_FILE}); render it with "
                               "`rigidbench render`")
-        if is_foreign_sample(self.path):
-            raise BundleError(foreign_layout_message(self.path))
+        if is_published_metadata(self.metadata):
+            raise PublishedLayoutError(published_layout_message(self.path.parent, SAMPLE_WHAT))
 
     def __repr__(self) -> str:
         return f"Sample({str(self.path)!r})"
@@ -377,7 +363,7 @@ def bundle_dirs(split_dir: str | Path) -> list[Path]:
     if not split_dir.is_dir():
         return []
     return sorted(p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
-                  and (p / "metadata.json").is_file() and not is_foreign_sample(p))
+                  and (p / "metadata.json").is_file())
 
 
 def _holders(root: Path, depth: int = 3) -> list[Path]:
@@ -402,9 +388,7 @@ def resolve_split_dir(data: str | Path, split: str | None = None) -> Path:
     if not data.is_dir():
         raise BundleError(f"{data}: data directory does not exist; render examples into it with "
                           f"`rigidbench render --split {split or 'eval'} --data {data}`")
-    if is_foreign_root(data):
-        root = data.parent if data.name in ("samples", "eval") and is_foreign_root(data.parent) else data
-        raise BundleError(foreign_layout_message(root))
+    check_not_published_layout(data)
     if bundle_dirs(data):
         if split is not None and data.name in SPLITS and data.name != split:
             raise BundleError(f"{data} is the '{data.name}' split directory, but --split {split} was given; "
@@ -587,5 +571,4 @@ __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_
            "TRAJECTORIES_FILE", "CONTACTS_FILE", "TRACKS_FILE", "METADATA_FILE", "PROMPT_FILE", "SPEC_FILE",
            "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
            "slice_trajectory", "camera_metadata", "make_metadata", "prepare_tmp", "commit", "Sample",
-           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "is_foreign_sample", "is_foreign_root",
-           "foreign_layout_message"]
+           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "refuse_imported"]

@@ -15,7 +15,9 @@ from one generator seeded with the example seed; ``published`` is the rule of th
 evaluator, which computed the tracks of the published evaluation set at evaluation time: 3
 iterations of a 3x3 cross (a diamond of radius 3), the raw mask when fewer than 20 pixels survive,
 and a fresh generator seeded 42 for every actor. Projection and visibility are the same in both;
-the principal point is whatever the bundle's K says (the published set's is (W/2, H/2)).
+the principal point is whatever the bundle's K says (the published set's is (W/2, H/2)). Our renders
+use the published rule too (``RENDER_TRACK_RULE``); bundles rendered before record no rule and
+used ``rigidbench``.
 """
 
 from __future__ import annotations
@@ -56,6 +58,9 @@ TRACK_RULES = {
     "rigidbench": TrackRule("rigidbench", "disk", EROSION_RADIUS_PX, False, None),
     "published": TrackRule("published", "cross", 3, True, 42),
 }
+#: the rule our renders use: the published one, so that one rule holds everywhere (docs/metrics.md gives
+#: what the switch moved, measured with benchmarks/track_rule.py)
+RENDER_TRACK_RULE = "published"
 
 
 @dataclass
@@ -223,5 +228,5 @@ def ground_truth_tracks(masks: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R
                   points_per_actor=per_actor)
 
 
-__all__ = ["Tracks", "TrackRule", "TRACK_RULES", "erode_cross", "POINTS_PER_ACTOR", "EROSION_RADIUS_PX", "DEPTH_TOLERANCE", "disk", "erode",
+__all__ = ["Tracks", "TrackRule", "TRACK_RULES", "RENDER_TRACK_RULE", "erode_cross", "POINTS_PER_ACTOR", "EROSION_RADIUS_PX", "DEPTH_TOLERANCE", "disk", "erode",
            "sample_query_pixels", "body_points", "carry", "visibility", "ground_truth_tracks"]

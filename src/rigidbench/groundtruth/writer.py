@@ -20,7 +20,7 @@ from ..video import write_video
 from . import bundle as B
 from .camera_model import camera_pose, intrinsics, project
 from .contacts import quat_to_matrix
-from .tracks import DEPTH_TOLERANCE, EROSION_RADIUS_PX, POINTS_PER_ACTOR, ground_truth_tracks
+from .tracks import DEPTH_TOLERANCE, POINTS_PER_ACTOR, RENDER_TRACK_RULE, TRACK_RULES, ground_truth_tracks
 from .trajectory import save_contacts
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,8 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
     R_c, t_c = camera_pose(cam.target_m, cam.azimuth_deg, cam.elevation_deg, cam.distance_m)
     K = intrinsics(spec.camera.lens_mm, spec.camera.sensor_width_mm, *preset.resolution)
     tracks = ground_truth_tracks(masks, result.depth_m, K, R_c, t_c, quat_to_matrix(traj.quat_wxyz), traj.positions_m,
-                                 np.array([r == "active" for r in roles]), seed=spec.seed)
+                                 np.array([r == "active" for r in roles]), seed=spec.seed,
+                                 rule=TRACK_RULES[RENDER_TRACK_RULE])
     if tracks.n_points and not tracks.visibility[:, 0].all():
         log.warning("example %s: %d ground-truth points are not visible at frame 0", spec.sample_id,
                     int((~tracks.visibility[:, 0]).sum()))
@@ -80,8 +81,8 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
     software = {**result.software, "rigidbench": __version__, "python": sys.version.split()[0],
                 "numpy": np.__version__}
     seconds = {**{k: round(v, 3) for k, v in result.seconds.items()}, "total": round(total_s, 3)}
-    track_facts = {"points_per_actor": POINTS_PER_ACTOR, "erosion_px": EROSION_RADIUS_PX,
-                   "depth_tolerance": DEPTH_TOLERANCE, "sampled": [int(n) for n in tracks.points_per_actor]}
+    track_facts = {"points_per_actor": POINTS_PER_ACTOR, "depth_tolerance": DEPTH_TOLERANCE,
+                   **TRACK_RULES[RENDER_TRACK_RULE].facts(), "sampled": [int(n) for n in tracks.points_per_actor]}
     meta = B.make_metadata(spec, resolution=preset.resolution, frames=T, simulated_frames=result.simulation.frames,
                            fps=float(spec.sim.fps), render=render_facts, software=software, seconds=seconds,
                            tracks=track_facts)

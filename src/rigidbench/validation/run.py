@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import UserError
-from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported, resolve_split_dir
 from ..metrics import METRICS
 from ..perception.features import FeatureNets, load_feature_nets
 from ..predictors import PREDICTORS
@@ -155,6 +155,8 @@ def validate_metrics(data_dir: str | Path, out_dir: str | Path, *, examples: int
     data_dir, out_dir = Path(data_dir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     samples = choose_examples(data_dir, examples)
+    if with_rendered:
+        refuse_imported([s.path for s in samples], "validate-metrics --with-rendered re-renders the scene")
     log.info("validating metrics on %d examples: %s", len(samples),
              ", ".join(f"{s.sample_id} ({s.task})" for s in samples))
     if nets is None:
