@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -26,13 +27,21 @@ from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
 from rigidbench.errors import ConfigError, PredictionError, UserError  # noqa: E402
 from rigidbench.pipeline.predict import GENERATION_FILE, predict  # noqa: E402
-from rigidbench.predictors import PREDICTORS, Kind, PredictContext  # noqa: E402
+from rigidbench.predictors import PREDICTORS, SEED_RULE, Kind, PredictContext, example_seed  # noqa: E402
 from rigidbench.predictors.hosted import HostedPredictor, load_hosted_config, parse_models  # noqa: E402
 from rigidbench.predictors.replicate import CallStats, ClientSettings, Deadline, ReplicateClient  # noqa: E402
 from rigidbench.video import probe_video  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 from replicate_server import TOKEN, StandInReplicate, make_split, tiny_mp4  # noqa: E402
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def sent_frame(split, sample_id="00000", size=(1280, 720)):
+    """The example's first frame as the adapter must send it: Lanczos-resized to ``size``, exact pixels."""
+    frame = Image.open(split / sample_id / "frames" / "00000.png").convert("RGB")
+    return np.asarray(frame.resize(size, Image.Resampling.LANCZOS))
 
 # The paper's table (appendix B.1) and issue 14, written out here rather than read from models.yaml.
 NEG = object()  # the paper's negative prompt
@@ -108,6 +117,7 @@ def test_the_six_hosted_models_are_registered_and_configured():
         assert isinstance(PREDICTORS[name].create(), HostedPredictor) and PREDICTORS[name].create().paid
         assert cfg.model(name).replicate == slug
     assert (cfg.image.width, cfg.image.height, cfg.image.upload_threshold_bytes) == (1280, 720, 1_000_000)
+    assert cfg.image.format == "png" and cfg.image.mime == "image/png"
     assert HostedPredictor(PREDICTORS["veo-3.1"]).concurrency(PredictContext()) == 8
 
 
@@ -128,10 +138,12 @@ def test_request_body_matches_the_paper_table(name, server, config, tmp_path):
     task_prompt = (split / "00000" / "prompt.txt").read_text().strip()
     for field, want in expected.items():
         got = sent[field]
-        if want == "IMAGE":
-            assert got.startswith("data:image/jpeg;base64,")
-            image = Image.open(io.BytesIO(base64.b64decode(got.split(",", 1)[1])))
-            assert image.format == "JPEG" and image.size == (1280, 720)
+        if want == "IMAGE":  # a lossless PNG, as the paper's runs sent it
+            assert got.startswith("data:image/png;base64,") and len(got) < 1_000_000
+            data = base64.b64decode(got.split(",", 1)[1])
+            image = Image.open(io.BytesIO(data))
+            assert data.startswith(PNG_SIGNATURE) and image.format == "PNG" and image.size == (1280, 720)
+            assert np.array_equal(np.asarray(image.convert("RGB")), sent_frame(split))
         elif want == "PROMPT":
             assert got == full_prompt(task_prompt) and got.endswith("Motion begins on the first frame.")
         elif want is NEG:
@@ -142,6 +154,8 @@ def test_request_body_matches_the_paper_table(name, server, config, tmp_path):
     assert doc["model"]["model"] == slug and doc["model"]["inputs"] == {k: v for k, v in expected.items()
                                                                          if v not in ("IMAGE", "PROMPT", NEG)}
     assert doc["settings"]["model"] == slug and doc["settings"]["seed"] is None  # no model takes a seed
+    assert doc["settings"]["image"] == {"width": 1280, "height": 720, "format": "png"}
+    assert "seeds" not in doc["settings"]  # no seed is sent, so none is derived
     entry = doc["examples"]["00000"]
     assert entry["status"] == "succeeded" and entry["prediction_id"].startswith("stand")
     assert entry["version"] == "hidden" and entry["metrics"]["predict_time"] == 0.01 and entry["seed"] is None
@@ -151,14 +165,48 @@ def test_request_body_matches_the_paper_table(name, server, config, tmp_path):
     assert not list((out / ".hosted").glob("*.mp4"))  # the download was moved into place, not kept twice
 
 
-def test_a_large_first_frame_is_uploaded_through_the_files_endpoint(server, tmp_path):
-    config = write_config(tmp_path, image={"upload_threshold_bytes": 1000})
-    split = make_split(tmp_path / "eval", 1)
+def test_a_first_frame_too_large_for_a_data_uri_is_uploaded_as_png(server, config, tmp_path):
+    server.max_data_uri_bytes = 1_000_000  # Replicate recommends data URIs under 1 MB
+    split = make_split(tmp_path / "eval", 1, texture="noise")  # its 1280x720 PNG is about 1.6 MB
     assert not run("kling-3.0", split, tmp_path / "out", config).failed
-    (upload,) = server.requests_to("/v1/files", "POST")
-    assert upload.headers["content-type"].startswith("multipart/form-data") and b"\xff\xd8" in upload.body
-    assert server.creations()[0].json["input"]["start_image"] == f"{server.url}/v1/files/file0001"
+    (request,) = server.requests_to("/v1/files", "POST")
+    assert request.headers["content-type"].startswith("multipart/form-data")
+    (upload,) = server.uploads
+    assert (upload.filename, upload.content_type) == ("00000.png", "image/png") and len(upload.data) > 1_000_000
+    assert upload.data.startswith(PNG_SIGNATURE)
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(upload.data)).convert("RGB")), sent_frame(split))
+    assert server.creations()[0].json["input"]["start_image"] == f"{server.url}/v1/files/{upload.file_id}"
     assert generation(tmp_path / "out")["examples"]["00000"]["image_sent_as"] == "upload"
+    # the same frame inline (threshold raised past it) is what the size limit refuses
+    inline = write_config(tmp_path, image={"upload_threshold_bytes": 10_000_000})
+    summary = run("kling-3.0", split, tmp_path / "inline", inline)
+    assert "HTTP 413" in summary.failed["00000"] and len(server.uploads) == 1
+
+
+def test_a_model_that_takes_a_seed_gets_each_examples_own(server, tmp_path):
+    config = write_config(tmp_path)
+    data = yaml.safe_load((config / "models.yaml").read_text())
+    data["models"]["veo-3.1"]["seed_field"] = "seed"
+    (config / "models.yaml").write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    assert not run("veo-3.1", make_split(tmp_path / "eval", 2), out, config).failed  # base seed 7
+    sent = {json.loads(r.body)["input"]["prompt"].split("number ")[1][0]: json.loads(r.body)["input"]["seed"]
+            for r in server.creations()}
+    assert sent == {"0": example_seed(7, "00000"), "1": example_seed(7, "00001")}
+    doc = generation(out)
+    assert doc["settings"]["seed"] == 7 and doc["settings"]["seeds"] == SEED_RULE
+    assert [doc["examples"][i]["seed"] for i in ("00000", "00001")] == [sent["0"], sent["1"]]
+
+
+def test_the_jpeg_of_the_earlier_adapter_is_an_option(server, tmp_path):
+    config = write_config(tmp_path, image={"format": "jpeg"})
+    split = make_split(tmp_path / "eval", 1)
+    assert not run("veo-3.1", split, tmp_path / "out", config).failed
+    sent = server.creations()[0].json["input"]["image"]
+    assert sent.startswith("data:image/jpeg;base64,")
+    assert Image.open(io.BytesIO(base64.b64decode(sent.split(",", 1)[1]))).format == "JPEG"
+    assert generation(tmp_path / "out")["settings"]["image"] == {"width": 1280, "height": 720, "format": "jpeg",
+                                                                 "jpeg_quality": 95}
 
 
 # -- the token ------------------------------------------------------------------------------------------
@@ -380,6 +428,8 @@ def test_models_yaml_errors_name_the_file_and_the_field(tmp_path):
         (lambda d: d["client"].update(max_retries=-1), "field 'client.max_retries': must be >= 0"),
         (lambda d: d["client"].update(wait_s=120), "field 'client.wait_s'"),
         (lambda d: d["image"].update(width="wide"), "field 'image.width': expected an integer"),
+        (lambda d: d["image"].update(format="gif"), "field 'image.format': unknown value 'gif'"),
+        (lambda d: d["image"].update(qualty=90), "field 'image.qualty': unknown field"),
         (lambda d: d.update(extra=1), "field 'extra': unknown field"),
     ]
     for edit, message in cases:

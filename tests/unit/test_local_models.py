@@ -73,7 +73,8 @@ def test_wan_defaults_are_the_papers_and_the_run_records_them():
     settings = predictor.settings(ctx)
     assert settings == {"seed": 7, "source": "hub", "model": "Wan-AI/Wan2.2-TI2V-5B-Diffusers", "revision": "main",
                         "height": 704, "width": 1280, "num_frames": 49, "fps": 24.0, "steps": 50,
-                        "guidance_scale": 5.0, "dtype": "bfloat16", "tiled_vae": False, "checkpoint": None}
+                        "guidance_scale": 5.0, "dtype": "bfloat16", "tiled_vae": False, "sampler": "flow-euler",
+                        "checkpoint": None}
     json.dumps(settings)  # .predictor.json
     info = predictor.generation_info(ctx)
     json.dumps(info)  # generation.json
@@ -82,6 +83,8 @@ def test_wan_defaults_are_the_papers_and_the_run_records_them():
     assert "not stated in the paper" in info["guidance_scale_source"]
     assert info["negative_prompt"] == NEGATIVE_PROMPT and info["seed"] == 7 and "differs_from_paper" not in info
     assert info["offload"] is False and info["tiled_vae"] is False and info["device"] in ("cpu", "cuda")
+    assert info["sampler"] == "flow-euler" and "DiffSynth" in info["release_sampler"]
+    assert "differs_from_release" not in info and "libx264rgb" in info["storage"] and "sha256" in info["seeds"]
 
 
 def test_cosmos_defaults_are_the_papers():
@@ -147,7 +150,8 @@ def test_wan_makes_frames_at_24_fps_from_the_models_inputs(tmp_path):
     assert kwargs["generator"].device.type == "cpu" and kwargs["generator"].initial_seed() == 5
     assert pred.frames.dtype == np.uint8 and pred.frames.shape == (5, 64, 96, 3)
     assert np.allclose(pred.times_s, np.arange(5) / 24.0) and pred.fps == pytest.approx(24.0)
-    assert pred.lossless is False and pred.metadata["seconds_model"] > 0 and pred.metadata["frames"] == 5
+    assert pred.lossless is True and pred.metadata["seconds_model"] > 0 and pred.metadata["frames"] == 5
+    assert pred.metadata["seed"] == 5 and pred.metadata["scheduler"] == "WanFlowEulerScheduler"
     write_prediction(pred, tmp_path, "00001")
     info = probe_video(tmp_path / "00001.mp4")
     assert info.n_frames == 5 and info.fps_nominal == pytest.approx(24.0) and (info.width, info.height) == (96, 64)
@@ -235,7 +239,7 @@ def test_checkpoint_kinds_are_detected_from_their_files(checkpoints, tmp_path):
     with pytest.raises(wan.CheckpointError, match="does not exist"):
         wan.detect_checkpoint(tmp_path / "missing")
     (tmp_path / "weights.pt").write_bytes(b"")
-    with pytest.raises(wan.CheckpointError, match="only .safetensors"):
+    with pytest.raises(RigidBenchError, match="weights.pt: cannot be read as a PyTorch file"):  # .pt is read now
         wan.detect_checkpoint(tmp_path / "weights.pt")
     (tmp_path / "vae").mkdir()
     (tmp_path / "vae" / "config.json").write_text(json.dumps({"_class_name": "AutoencoderKLWan"}))

@@ -4,6 +4,8 @@ Outputs in ``OUT/``: ``<id>.mp4`` (written last, atomically) and ``<id>.state.np
 that write the exact world state; ``generation.json`` with the model, every parameter, package
 versions and per example its status, seed, prompts, timing and whatever the model reports
 (prediction id, cost); and a hidden ``.predictor.json`` recording the predictor and its settings.
+``ctx.seed`` is the run's base seed: each example is predicted with its own seed,
+``predictors.example_seed(base, example id)``, which its record in generation.json holds.
 A rerun with the same settings skips finished examples and retries failed ones; with other
 settings it writes the selected examples again. One example's failure is recorded and the others
 go on. Predictors that allow it (hosted APIs) run several examples at once in threads.
@@ -16,7 +18,7 @@ import logging
 import shutil
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
 
@@ -27,9 +29,10 @@ from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..evaluation.cache import write_json
 from ..evaluation.provenance import versions
-from ..groundtruth.bundle import Sample, bundle_dirs
+from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported
 from ..perception.gt import state_path
-from ..predictors import Kind, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs, predictor_info
+from ..predictors import (SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo, example_seed,
+                          model_inputs, predictor_info)
 from ..video import VIDEO_EXTENSIONS, write_video
 
 log = logging.getLogger(__name__)
@@ -138,7 +141,11 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
         predictor = info.create()
     settings_source = predictor or info.create()  # settings and provenance come from the driver's instance
     refs = shard.select(select_examples(split_dir, ids, limit))
+    if info.needs_blender:
+        refuse_imported(refs, f"predictor '{info.name}' re-simulates the scene")
     settings = {"predictor": info.name, "target": info.target, **settings_source.settings(ctx)}
+    if settings.get("seed") is not None:  # a seeded predictor: ctx.seed is the base of per-example seeds
+        settings["seeds"] = SEED_RULE
     summary = PredictSummary()
     if dry_run:
         return _dry_run(predictor, refs, out_dir, settings, ctx, summary)
@@ -206,7 +213,7 @@ class PredictWorker:
         self.predictor = predictor or PredictorInfo(**{**job["predictor"], "kind": Kind(job["predictor"]["kind"])}).create()
 
     def __call__(self, sample_id: str) -> dict:
-        info, ctx = self.predictor.info, self.ctx
+        info, ctx = self.predictor.info, example_context(self.ctx, sample_id)
         started = time.time()
         entry: dict = {"seed": ctx.seed}
         try:
@@ -228,6 +235,11 @@ class PredictWorker:
         self.predictor.close()
 
 
+def example_context(ctx: PredictContext, sample_id: str) -> PredictContext:
+    """``ctx`` with the seed of example ``sample_id``: ``example_seed(ctx.seed, sample_id)`` (ctx.seed is the base)."""
+    return replace(ctx, seed=example_seed(ctx.seed, sample_id))
+
+
 def _dry_run(predictor: Predictor, refs: list[Path], out_dir: Path, settings: dict, ctx: PredictContext,
              summary: PredictSummary) -> PredictSummary:
     """Print the request of every example that a real run would generate; send and write nothing."""
@@ -237,7 +249,7 @@ def _dry_run(predictor: Predictor, refs: list[Path], out_dir: Path, settings: di
         if same and any((out_dir / f"{ref.name}{ext}").exists() for ext in VIDEO_EXTENSIONS):
             summary.skipped.append(ref.name)
             continue
-        request = predictor.describe(Sample(ref), ctx)
+        request = predictor.describe(Sample(ref), example_context(ctx, ref.name))
         print(f"{ref.name}: {json.dumps(request, sort_keys=True)}")
         summary.planned.append(ref.name)
     summary.paid_calls = len(summary.planned) if predictor.paid else 0

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from ..errors import UserError
 from ..registry import LazyRegistry
-from .base import (FailureMode, FunctionPredictor, Kind, ModelInputs, PredictContext, Prediction, Predictor, PredictorInfo,
-                   model_inputs)
+from .base import (SEED_RULE, FailureMode, FunctionPredictor, Kind, ModelInputs, PredictContext, Prediction, Predictor,
+                   PredictorInfo, example_seed, model_inputs)
 
 PREDICTORS: LazyRegistry[PredictorInfo] = LazyRegistry("predictor")
 
@@ -99,5 +99,6 @@ def failure_modes() -> tuple[str, ...]:
     return tuple(n for n, info in PREDICTORS.items() if info.kind == Kind.FAILURE_MODE)
 
 
-__all__ = ["PREDICTORS", "FailureMode", "FunctionPredictor", "Kind", "ModelInputs", "PredictContext", "Prediction",
-           "Predictor", "PredictorInfo", "failure_modes", "load_entry_points", "model_inputs", "predictor_info"]
+__all__ = ["PREDICTORS", "SEED_RULE", "FailureMode", "FunctionPredictor", "Kind", "ModelInputs", "PredictContext",
+           "Prediction", "Predictor", "PredictorInfo", "example_seed", "failure_modes", "load_entry_points",
+           "model_inputs", "predictor_info"]

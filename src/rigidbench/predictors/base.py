@@ -14,11 +14,16 @@ The target may be a ``Predictor`` subclass (constructed with the info), a failur
 A video model reads its inputs from the sample exactly as the paper gives them to every model:
 ``model_inputs(sample)`` returns the first frame, the task prompt followed by the paper's fixed
 suffix, and the paper's negative prompt.
+
+Seeds: ``--seed`` is a base seed. The predict stage gives each example its own seed,
+``example_seed(base, example id)`` (a SHA-256 of both, so it is the same on every machine and in
+every Python process), passes it as ``ctx.seed`` and records it per example in generation.json.
 """
 
 from __future__ import annotations
 
 import enum
+import hashlib
 import inspect
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -34,6 +39,18 @@ from ..perception.gt import WorldState
 from ..registry import load_target
 
 
+#: How an example's seed follows from the base seed (recorded in every run's settings and generation.json).
+SEED_RULE = ("per example: the first 4 bytes of sha256('<base seed>/<example id>') (UTF-8) as a big-endian integer, "
+             "top bit cleared (0 <= seed < 2**31)")
+
+
+def example_seed(base_seed: int, example_id: str) -> int:
+    """The seed of example ``example_id`` in a run with base seed ``base_seed``: an int in [0, 2**31), the same
+    on every machine and Python process (a SHA-256, not ``hash()``); different examples get unrelated seeds."""
+    digest = hashlib.sha256(f"{int(base_seed)}/{example_id}".encode("utf-8")).digest()
+    return int.from_bytes(digest[:4], "big") & 0x7FFF_FFFF
+
+
 class Kind(str, enum.Enum):
     FAILURE_MODE = "failure mode"
     LOCAL = "local model"
@@ -47,7 +64,8 @@ class Prediction:
     ``video_path``, a video file already encoded (e.g. a hosted model's download), kept as it is.
 
     state: the exact world state the video shows, when known (failure modes); lossless: encode the
-    frames losslessly (failure modes, so gt perception sees exactly the frames) or as H.264 crf 18;
+    frames losslessly (failure modes, so gt perception sees exactly the frames, and the local video models,
+    so scoring sees exactly what they generated) or as H.264 4:2:0 crf 18;
     metadata: per-example facts for generation.json (prediction id, seed, timings, cost)."""
 
     frames: np.ndarray | None = None
@@ -68,7 +86,8 @@ class Prediction:
 @dataclass(frozen=True)
 class PredictContext:
     """What a predictor may use besides the example: the run context (configuration registry, device,
-    cache), the failure-mode severity in [0, 1], the generation seed, for predictors that render a
+    cache), the failure-mode severity in [0, 1], the generation seed (the predict stage passes each example
+    its own, ``example_seed(--seed, example id)``; it is the base seed in settings), for predictors that render a
     directory in which to keep their bundle (None: a temporary one), the output directory of the run
     (where a predictor may keep per-example state such as a hosted prediction id) and model options
     from the command line (e.g. offload, checkpoint, concurrency)."""

@@ -7,10 +7,13 @@ the Replicate model, the names of the inputs that receive the first frame, the p
 negative prompt, and the fixed inputs exactly as the paper's table gives them; nothing about a
 model is written in code.
 
-Every example sends the first frame resized to 1280x720 as a JPEG (a data URI when small enough,
-else an upload through the files endpoint), the task prompt with the paper's suffix and, for models
-that take one, the paper's negative prompt. No seed is sent: the paper's table lists every input of
-its calls and none is a seed (``seed_field`` in the YAML sends ``--seed`` to a model that takes one).
+Every example sends the first frame resized (Lanczos) to 1280x720 as a lossless PNG, as the paper's
+runs did (the authors' release, ``eval/generate/remote.py``): inline as a data URI when that is small
+enough, else uploaded through the files endpoint and sent as its URL (``image.format: jpeg`` in the YAML
+sends a JPEG instead, this adapter's choice before issue 24); the task prompt with the paper's suffix and,
+for models that take one, the paper's negative prompt. No seed is sent: the paper's table lists every input of
+its calls and none is a seed (``seed_field`` in the YAML sends each example's seed, derived from ``--seed`` and
+the example id, to a model that takes one).
 
 Resume: right after a prediction is created its id is stored in ``OUT/.hosted/<id>.json``. A rerun
 of an example with a stored id fetches that prediction instead of creating a new one: a succeeded
@@ -40,7 +43,7 @@ from ..config import FieldReader, config_file, read_config_yaml
 from ..errors import ConfigError, PredictionError, UserError
 from ..jsonio import write_json
 from ..video import VIDEO_EXTENSIONS
-from .base import PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
+from .base import SEED_RULE, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
 from .replicate import (TOKEN_ENV, CallStats, ClientSettings, Deadline, ReplicateClient, ReplicateError,
                         base_url_from_env, output_url, public_url)
 
@@ -68,12 +71,41 @@ class HostedModel:
     inputs: Mapping[str, Any]
 
 
+IMAGE_FORMATS = {"png": "image/png", "jpeg": "image/jpeg"}
+#: Replicate recommends a data URI only for files under 1 MB ("Option 3: Data URI ... only recommended if the
+#: file is less than 1MB", https://replicate.com/docs/topics/predictions/input-files); larger inputs go through
+#: POST /v1/files, which takes up to 100 MiB (replicate/replicate-javascript#286). We compare the whole URI.
+DATA_URI_LIMIT_BYTES = 1_000_000
+
+
 @dataclass(frozen=True)
 class ImageSettings:
     width: int = 1280
     height: int = 720
-    jpeg_quality: int = 95
-    upload_threshold_bytes: int = 1_000_000
+    jpeg_quality: int = 95  # used only with format "jpeg"
+    upload_threshold_bytes: int = DATA_URI_LIMIT_BYTES
+    format: str = "png"
+
+    @property
+    def mime(self) -> str:
+        return IMAGE_FORMATS[self.format]
+
+    def record(self) -> dict[str, Any]:
+        """What of these settings shapes the image sent (jpeg_quality only for JPEG)."""
+        out = {"width": self.width, "height": self.height, "format": self.format}
+        if self.format == "jpeg":
+            out["jpeg_quality"] = self.jpeg_quality
+        return out
+
+
+@dataclass(frozen=True)
+class _ImageNumbers:
+    """The numeric fields of ImageSettings (read with FieldReader.numbers)."""
+
+    width: int = ImageSettings.width
+    height: int = ImageSettings.height
+    jpeg_quality: int = ImageSettings.jpeg_quality
+    upload_threshold_bytes: int = ImageSettings.upload_threshold_bytes
 
 
 @dataclass(frozen=True)
@@ -126,8 +158,11 @@ def parse_models(path: Path, data: Any) -> HostedConfig:
                 raise ConfigError(f"{path}: field '{prefix}.inputs.{f}': this input is filled per example; remove "
                                   "it from inputs")
         models[model.name] = model
-    image = root.sub("image", {}).numbers(ImageSettings, {"width": 16, "height": 16, "jpeg_quality": 1,
-                                                          "upload_threshold_bytes": 0})
+    image_reader = root.sub("image", {})
+    image_format = image_reader.str("format", "png", choices=tuple(IMAGE_FORMATS))
+    numbers = FieldReader(path, {k: v for k, v in image_reader.data.items() if k != "format"}, "image.")
+    image = numbers.numbers(_ImageNumbers, {"width": 16, "height": 16, "jpeg_quality": 1, "upload_threshold_bytes": 0})
+    image = ImageSettings(**asdict(image), format=image_format)
     if image.jpeg_quality > 100:
         raise ConfigError(f"{path}: field 'image.jpeg_quality': must lie in [1, 100], got {image.jpeg_quality}")
     client = root.sub("client", {}).numbers(ClientSettings, {
@@ -148,19 +183,23 @@ def load_hosted_config(extra_dirs=()) -> HostedConfig:
 
 
 def encode_first_frame(image: np.ndarray, settings: ImageSettings) -> bytes:
-    """(H,W,3) uint8 -> JPEG bytes at settings.width x settings.height (Lanczos)."""
+    """(H,W,3) uint8 -> PNG (lossless; or JPEG with ``settings.format`` "jpeg") bytes at settings.width x
+    settings.height (Lanczos)."""
     from PIL import Image
 
     pil = Image.fromarray(np.ascontiguousarray(image[..., :3]).astype(np.uint8, copy=False))
     if pil.size != (settings.width, settings.height):
         pil = pil.resize((settings.width, settings.height), Image.Resampling.LANCZOS)
     out = io.BytesIO()
-    pil.save(out, format="JPEG", quality=settings.jpeg_quality)
+    if settings.format == "jpeg":
+        pil.save(out, format="JPEG", quality=settings.jpeg_quality)
+    else:
+        pil.save(out, format="PNG")
     return out.getvalue()
 
 
-def data_uri(jpeg: bytes) -> str:
-    return "data:image/jpeg;base64," + base64.b64encode(jpeg).decode("ascii")
+def data_uri(data: bytes, mime: str = "image/png") -> str:
+    return f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
 
 
 # -- per-example state (resume) ------------------------------------------------------------------------
@@ -222,8 +261,7 @@ class HostedPredictor(Predictor):
         return {"model": model.replicate, "inputs": dict(model.inputs),
                 "fields": {"image": model.image_field, "prompt": model.prompt_field,
                            "negative_prompt": model.negative_prompt_field, "seed": model.seed_field},
-                "image": {"width": cfg.image.width, "height": cfg.image.height, "format": "jpeg",
-                          "jpeg_quality": cfg.image.jpeg_quality},
+                "image": cfg.image.record(),
                 "seed": ctx.seed if model.seed_field else None}
 
     def generation_info(self, ctx: PredictContext) -> dict[str, Any]:
@@ -235,9 +273,10 @@ class HostedPredictor(Predictor):
             "fields": {"image": model.image_field, "prompt": model.prompt_field,
                        "negative_prompt": model.negative_prompt_field, "seed": model.seed_field},
             "negative_prompt_sent": model.negative_prompt_field is not None,
-            "seed": (f"--seed sent as '{model.seed_field}'" if model.seed_field else
+            "seed": (f"each example's seed ({SEED_RULE}, base --seed {ctx.seed}) sent as '{model.seed_field}'"
+                     if model.seed_field else
                      "none sent: the paper's inputs for this model have no seed, so generations are not reproducible"),
-            "image": {**asdict(cfg.image), "format": "jpeg", "resize": "Lanczos",
+            "image": {**asdict(cfg.image), "resize": "Lanczos",
                       "sent_as": f"data URI under {cfg.image.upload_threshold_bytes:,} bytes, else POST /v1/files"},
             "client": cfg.client.as_dict(), "concurrency": self.concurrency(ctx), "config": str(cfg.path),
         }
@@ -257,12 +296,12 @@ class HostedPredictor(Predictor):
         """The request a run would send (the image elided, the token never)."""
         cfg, model = self.config(ctx), self.model(ctx)
         inputs = model_inputs(sample)
-        jpeg = encode_first_frame(inputs.image, cfg.image)
-        uri_bytes = len(data_uri(jpeg))
+        encoded = encode_first_frame(inputs.image, cfg.image)
+        uri_bytes = len(data_uri(encoded, cfg.image.mime))
         how = ("a data URI" if uri_bytes < cfg.image.upload_threshold_bytes
                else "the URL of an upload to POST /v1/files")
-        image = (f"<{inputs.image_path.name} as a {cfg.image.width}x{cfg.image.height} JPEG of {len(jpeg):,} bytes, "
-                 f"sent as {how}; elided>")
+        image = (f"<{inputs.image_path.name} as a {cfg.image.width}x{cfg.image.height} {cfg.image.format.upper()} of "
+                 f"{len(encoded):,} bytes, sent as {how}; elided>")
         owner, _, name = model.replicate.partition("/")
         out = {"method": "POST", "url": f"{public_url(base_url_from_env())}/v1/models/{owner}/{name}/predictions",
                "headers": {"Authorization": f"Bearer ${TOKEN_ENV}", "Prefer": "wait"},
@@ -300,9 +339,9 @@ class HostedPredictor(Predictor):
 
         t0 = time.monotonic()
         inputs = model_inputs(sample)
-        jpeg = encode_first_frame(inputs.image, cfg.image)
+        encoded = encode_first_frame(inputs.image, cfg.image)
         fingerprint = hashlib.sha256(json.dumps(
-            {"model": model.replicate, "input": self._inputs(model, inputs, hashlib.sha256(jpeg).hexdigest(), ctx)},
+            {"model": model.replicate, "input": self._inputs(model, inputs, hashlib.sha256(encoded).hexdigest(), ctx)},
             sort_keys=True).encode()).hexdigest()
         timings["image_s"] = time.monotonic() - t0
 
@@ -320,11 +359,12 @@ class HostedPredictor(Predictor):
         sent_as = None
         if prediction is None:
             t0 = time.monotonic()
-            uri = data_uri(jpeg)
+            uri = data_uri(encoded, cfg.image.mime)
             if len(uri) < cfg.image.upload_threshold_bytes:
                 image_ref, sent_as = uri, "data URI"
             else:
-                image_ref = client.upload(jpeg, f"{sample_id}.jpg", "image/jpeg", deadline, stats)
+                suffix = "jpg" if cfg.image.format == "jpeg" else "png"
+                image_ref = client.upload(encoded, f"{sample_id}.{suffix}", cfg.image.mime, deadline, stats)
                 sent_as = "upload"
             timings["upload_s"] = time.monotonic() - t0
             t0 = time.monotonic()

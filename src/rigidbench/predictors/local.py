@@ -24,7 +24,13 @@ generation.json but do not make finished videos stale. The hub commit of a downl
 
 The device is ``ctx.run.device``, else CUDA when torch sees a GPU, else the CPU. The generator is
 a CPU ``torch.Generator`` seeded with ``ctx.seed``, so a seed gives the same initial noise on
-every device. torch and diffusers are imported only when a pipeline is loaded.
+every device; the predict stage passes each example its own seed (``example_seed(--seed, id)``), so
+no two examples start from the same noise. torch and diffusers are imported only when a pipeline is loaded.
+
+Storage: the frames are written losslessly (H.264 in RGB, libx264rgb with crf 0; ``STORAGE``), so
+``validate`` and ``evaluate`` decode exactly the pipeline's uint8 frames: no chroma subsampling and no
+generation loss (the paper's runs kept JPEG q95 4:4:4 frames; docs/reproducing.md has the SSIM effect of
+the H.264 4:2:0 crf 18 file written before).
 """
 
 from __future__ import annotations
@@ -41,12 +47,13 @@ import numpy as np
 from ..benchmark import NEGATIVE_PROMPT
 from ..errors import PredictionError, UserError, WeightsUnavailable
 from ..perception.device import resolve_device
-from .base import PredictContext, Prediction, Predictor, model_inputs
+from .base import SEED_RULE, PredictContext, Prediction, Predictor, model_inputs
 
 log = logging.getLogger(__name__)
 
 DTYPES = ("bfloat16", "float16", "float32")
-GENERATOR = "torch.Generator('cpu').manual_seed(seed)"
+GENERATOR = "torch.Generator('cpu').manual_seed(seed of the example)"
+STORAGE = "lossless H.264 RGB (libx264rgb, crf 0, 4:4:4, no chroma subsampling): decodes to exactly the frames"
 FRAME_CONVERSION = "pipeline frames in [0, 1] (output_type='np'), x 255, rounded to uint8"
 
 
@@ -185,7 +192,8 @@ class LocalVideoModel(Predictor):
             "negative_prompt": NEGATIVE_PROMPT,
             "image": "the reference example's first frame (PNG, as rendered)",
             "max_sequence_length": self.max_sequence_length,
-            "generator": GENERATOR, "seed": ctx.seed, "frames": FRAME_CONVERSION,
+            "generator": GENERATOR, "seed": ctx.seed, "seeds": SEED_RULE, "frames": FRAME_CONVERSION,
+            "storage": STORAGE,
             "device": self._resolve_device(ctx), "offload": option_flag(ctx, "offload"),
             "tiled_vae": option_flag(ctx, "tiled_vae"),
         }
@@ -303,7 +311,8 @@ class LocalVideoModel(Predictor):
                    max_sequence_length=self.max_sequence_length, **self.call_kwargs(pipe, inputs, p))
         seconds = time.perf_counter() - started
         frames = frames_to_uint8(out.frames)
-        metadata: dict[str, Any] = {"seconds_model": round(seconds, 3), "frames": int(frames.shape[0]),
+        metadata: dict[str, Any] = {"seed": int(ctx.seed), "seconds_model": round(seconds, 3),
+                                    "frames": int(frames.shape[0]),
                                     "resolution": [int(frames.shape[2]), int(frames.shape[1])]}
         if self._commit:
             metadata["model_commit"] = self._commit
@@ -313,7 +322,7 @@ class LocalVideoModel(Predictor):
             log.warning("%s: asked for %d frames, the pipeline returned %d", self.name, p["num_frames"],
                         frames.shape[0])
         times_s = np.arange(frames.shape[0], dtype=np.float64) / p["fps"]
-        return Prediction(frames=frames, times_s=times_s, lossless=False, metadata=metadata)
+        return Prediction(frames=frames, times_s=times_s, lossless=True, metadata=metadata)
 
     def close(self) -> None:
         """Free the pipeline (and the GPU memory it held)."""

@@ -10,6 +10,13 @@ default, 5.0 (``sample_guide_scale`` of the TI2V-5B configuration), and record i
 
 Besides the options of ``local.LocalVideoModel`` (``offload``, ``tiled_vae``, overrides):
 
+``sampler``: ``flow-euler`` (default) or ``unipc``. The paper does not name its sampler; its runs (the
+authors' release, through DiffSynth-Studio) used DiffSynth's flow-matching Euler schedule for Wan (shift
+5.0, 50 steps), which ``flow-euler`` reproduces with diffusers' FlowMatchEulerDiscreteScheduler
+(``wan_sampler``). ``unipc`` keeps the pipeline's own scheduler (the Diffusers repository's
+UniPCMultistepScheduler, flow_shift 5.0), this adapter's default before; it is recorded as a difference
+from the release.
+
 ``checkpoint``: a fine-tuned model (the paper's section 5), one of
 
 - a LoRA adapter: a PEFT adapter directory (``adapter_config.json`` + ``adapter_model.safetensors``,
@@ -54,6 +61,15 @@ PEFT_PREFIX = "base_model.model."
 ORIGINAL_PREFIX = "diffusion_model."
 #: module names of the original Wan code (DiffSynth too) that diffusers renames (attn1.to_q, ffn.net.0.proj, ...)
 ORIGINAL_NAMES = (".self_attn.", ".cross_attn.", ".ffn.0.", ".ffn.2.", "head.head", "text_embedding.0")
+SAMPLERS = {
+    "flow-euler": ("flow-matching Euler with DiffSynth's Wan schedule (the release's): sigma_i = 5 u_i / (1 + 4 u_i), "
+                   "u = linspace(1, 0, steps + 1)[:-1], timestep_i = 1000 sigma_i, last step to sigma 0; diffusers "
+                   "FlowMatchEulerDiscreteScheduler(shift=5.0) given that grid"),
+    "unipc": "the pipeline's own scheduler (Wan2.2-TI2V-5B-Diffusers: UniPCMultistepScheduler, flow_shift 5.0)",
+}
+DEFAULT_SAMPLER = "flow-euler"
+RELEASE_SAMPLER = ("DiffSynth-Studio 2.0.18 WanVideoPipeline defaults: FlowMatchScheduler('Wan'), sigma_shift 5.0, "
+                   "50 steps")
 HASH_LIMIT_BYTES = 2 * 2**30  # checkpoints up to this size are identified by their sha256, larger by size and mtime
 _FINGERPRINTS: dict[tuple, dict] = {}  # (path, size, mtime) -> fingerprint, so a run hashes each file once
 
@@ -106,13 +122,9 @@ def detect_checkpoint(path: str | Path) -> dict[str, Any]:
                                   "WanTransformer3DModel (config.json) or exactly one .safetensors file; found "
                                   f"{len(files)} .safetensors files")
         path = files[0]
-    if path.suffix != ".safetensors":
-        raise CheckpointError(f"checkpoint {path}: only .safetensors files are read (no pickled .pt/.bin)")
-    keys = _safetensors_keys(path)
-    if not keys:
-        raise CheckpointError(f"checkpoint {path} holds no tensors")
-    kind = "lora" if _is_lora(keys) else "transformer-state-dict"
-    return {"kind": kind, "path": str(path), "weights": str(path)}
+    from ..train.load import detect_file  # also the release's formats: .pt/.ckpt, DiffSynth key names
+
+    return detect_file(path)
 
 
 def checkpoint_files(found: dict[str, Any]) -> list[Path]:
@@ -178,6 +190,10 @@ def _check_adapter(transformer, expected: int, path) -> int:
 
 def load_lora(pipe, found: dict) -> dict[str, Any]:
     """Load a LoRA checkpoint into ``pipe.transformer`` as adapter "checkpoint"; returns facts for the record."""
+    if found.get("reader") == "rigidbench" or not hasattr(pipe, "lora_state_dict"):  # train/load.py merges it
+        from ..train.load import apply_file
+
+        return apply_file(pipe.transformer, found)
     try:
         return _load_lora(pipe, found)
     except (ValueError, KeyError, RuntimeError) as exc:  # peft / diffusers: no matching module, bad shapes
@@ -229,6 +245,10 @@ def load_full_transformer(pipe, found: dict):
     """Put a fine-tuned ``WanTransformer3DModel`` into ``pipe``: a saved directory replaces the
     transformer; a state dict is loaded strictly into the pipeline's transformer (same architecture,
     same dtype; every key must match)."""
+    if found.get("reader") == "rigidbench":  # the release's / DiffSynth's formats (train/load.py)
+        from ..train.load import apply_file
+
+        return apply_file(pipe.transformer, found)["loader"]
     if found["kind"] == "transformer-dir":
         from diffusers import WanTransformer3DModel
 
@@ -271,24 +291,37 @@ class WanPredictor(LocalVideoModel):
         path = ctx.option("checkpoint")
         return None if path is None else detect_checkpoint(path)
 
+    def sampler(self, ctx: PredictContext) -> str:
+        """The ``sampler`` option: "flow-euler" (default, the release's) or "unipc"."""
+        name = str(ctx.option("sampler", DEFAULT_SAMPLER))
+        if name not in SAMPLERS:
+            raise UserError(f"{self.name}: option sampler must be one of {', '.join(SAMPLERS)}, got {name!r}")
+        return name
+
     def extra_settings(self, ctx: PredictContext) -> dict[str, Any]:
         found = self.checkpoint(ctx)
-        if found is None:
-            return {"checkpoint": None}
-        return {"checkpoint": {"kind": found["kind"], "path": found["path"], "files": fingerprint(found)}}
+        checkpoint = None if found is None else {"kind": found["kind"], "path": found["path"],
+                                                 "files": fingerprint(found)}
+        return {"sampler": self.sampler(ctx), "checkpoint": checkpoint}
 
     def extra_info(self, ctx: PredictContext) -> dict[str, Any]:
+        sampler = self.sampler(ctx)
+        info: dict[str, Any] = {"sampler": sampler, "scheduler": SAMPLERS[sampler], "release_sampler": RELEASE_SAMPLER}
+        if sampler != DEFAULT_SAMPLER:
+            info["differs_from_release"] = {"sampler": [sampler, DEFAULT_SAMPLER]}
         found = self.checkpoint(ctx)
         if found is None:
-            return {"checkpoint": None}
+            return {**info, "checkpoint": None}
         described = {"lora-peft": "LoRA adapter (PEFT directory)", "lora": "LoRA adapter (safetensors)",
                      "transformer-dir": "full fine-tuned transformer (save_pretrained directory)",
                      "transformer-state-dict": "full fine-tuned transformer (safetensors state dict)"}
         record = {**found, "description": described[found["kind"]], "files": fingerprint(found)}
-        return {"checkpoint": record}
+        return {**info, "checkpoint": record}
 
     def predict(self, sample, ctx: PredictContext):
         pred = super().predict(sample, ctx)
+        pred.metadata["sampler"] = self.sampler(ctx)
+        pred.metadata["scheduler"] = type(self._pipe.scheduler).__name__
         if self._checkpoint_record:
             pred.metadata["checkpoint_loaded"] = dict(self._checkpoint_record)
         return pred
@@ -320,7 +353,10 @@ class WanPredictor(LocalVideoModel):
         return pipe
 
     def configure(self, pipe, ctx: PredictContext, injected: bool):
-        """Load the checkpoint (an injected pipeline is changed in place)."""
+        """Set the sampler's scheduler and load the checkpoint (an injected pipeline is changed in place)."""
+        from .wan_sampler import use_sampler
+
+        use_sampler(pipe, self.sampler(ctx))
         found = self.checkpoint(ctx)
         if found is None or (found["kind"] == "transformer-dir" and not injected):
             return pipe

@@ -1,0 +1,84 @@
+"""The samplers of ``wan-2.2`` (its option ``sampler``); imported only when a Wan pipeline is configured.
+
+``flow-euler`` (the default) is the sampler of the paper's runs. The authors' release generates with
+DiffSynth-Studio 2.0.18 (``WanVideoPipeline`` with its defaults: ``FlowMatchScheduler("Wan")``,
+``sigma_shift`` 5.0, 50 steps). Its schedule for n steps and shift s = 5:
+
+    u_i = 1 - i / n,  i = 0 .. n-1        (``linspace(1, 0, n + 1)`` without its last point, float32)
+    sigma_i = s u_i / (1 + (s - 1) u_i)   timestep_i = 1000 sigma_i
+    x_{i+1} = x_i + (sigma_{i+1} - sigma_i) v_i,   sigma_n = 0      (one Euler step per model call)
+
+diffusers' ``FlowMatchEulerDiscreteScheduler`` (shift 5) takes exactly this when it is handed the grid u
+(``set_timesteps(sigmas=u)``: it shifts the grid itself, in float32, and appends sigma_n = 0). The Wan
+pipeline asks for ``set_timesteps(num_inference_steps)`` only, for which diffusers spaces the grid
+between its training sigmas, already shifted (1 and about 0.005), and shifts it again (the last
+sigma of 50 steps is 0.024 instead of 0.093); so
+``WanFlowEulerScheduler`` supplies the grid when none is given and leaves everything else, the Euler
+step included, to diffusers.
+
+``unipc``: the pipeline's own scheduler, as the model repository ships it (for
+Wan-AI/Wan2.2-TI2V-5B-Diffusers ``UniPCMultistepScheduler`` with flow_shift 5.0): what this adapter
+used before issue 24.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from diffusers import FlowMatchEulerDiscreteScheduler
+
+from ..errors import UserError
+
+log = logging.getLogger(__name__)
+
+SHIFT = 5.0  # DiffSynth's sigma_shift for Wan (its WanVideoPipeline default, which the release keeps)
+NUM_TRAIN_TIMESTEPS = 1000
+
+
+def wan_grid(steps: int) -> torch.Tensor:
+    """(steps,) float32: DiffSynth's unshifted Wan grid, 1, 1 - 1/steps, ..., 1/steps."""
+    return torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float32)[:-1]
+
+
+class WanFlowEulerScheduler(FlowMatchEulerDiscreteScheduler):
+    """diffusers' flow-matching Euler scheduler with DiffSynth's Wan grid as its default sigmas.
+
+    ``replaced``: the scheduler it replaced in a pipeline (restored by ``use_sampler(pipe, "unipc")``)."""
+
+    replaced = None
+
+    def set_timesteps(self, num_inference_steps: int | None = None, device=None, sigmas=None, mu=None,
+                      timesteps=None):
+        """As diffusers' (timesteps (n,) = 1000 sigmas, sigmas (n + 1,) ending in 0); with only
+        ``num_inference_steps`` given, the grid is ``wan_grid(num_inference_steps)``."""
+        if sigmas is None and timesteps is None and num_inference_steps is not None:
+            sigmas = wan_grid(int(num_inference_steps)).numpy()
+        super().set_timesteps(num_inference_steps, device=device, sigmas=sigmas, mu=mu, timesteps=timesteps)
+
+
+def flow_euler_scheduler() -> WanFlowEulerScheduler:
+    """A new scheduler of the flow-euler sampler (shift 5.0, 1000 training timesteps)."""
+    return WanFlowEulerScheduler(num_train_timesteps=NUM_TRAIN_TIMESTEPS, shift=SHIFT)
+
+
+def use_sampler(pipe, sampler: str):
+    """Give ``pipe`` the scheduler of ``sampler`` (in place); returns that scheduler."""
+    current = pipe.scheduler
+    if sampler == "flow-euler":
+        if not isinstance(current, WanFlowEulerScheduler):
+            scheduler = flow_euler_scheduler()
+            scheduler.replaced = current
+            pipe.register_modules(scheduler=scheduler)
+    elif sampler == "unipc":
+        if isinstance(current, WanFlowEulerScheduler):
+            if current.replaced is None:
+                raise UserError("wan-2.2: sampler unipc asks for the pipeline's own scheduler, but this pipeline "
+                                "came with the flow-euler one; load the pipeline again or use sampler flow-euler")
+            pipe.register_modules(scheduler=current.replaced)
+        if type(pipe.scheduler).__name__ != "UniPCMultistepScheduler":
+            log.warning("wan-2.2: sampler unipc runs the pipeline's own scheduler, which is a %s here",
+                        type(pipe.scheduler).__name__)
+    else:
+        raise UserError(f"wan-2.2: option sampler must be flow-euler or unipc, got {sampler!r}")  # wan.SAMPLERS
+    return pipe.scheduler
