@@ -49,10 +49,11 @@ def synthetic_cache(root: Path, model: str, n: int, latent_shape, text_dim: int,
                                 "prompt_format": "synthetic (benchmark)"})
     g = torch.Generator().manual_seed(0)
     key = prompt_key("benchmark")
-    writer.add_text({key: torch.randn(tokens, text_dim, generator=g)}, {key: "benchmark"})
+    # UMT5's output at all text_len positions, `tokens` of them real (what preprocess stores)
+    writer.add_text({key: torch.randn(text_len, text_dim, generator=g)}, {key: "benchmark"}, {key: tokens})
     writer.set(text_dim=text_dim, latent_shape=list(latent_shape))
     latents = {f"{i:05d}": torch.randn(tuple(latent_shape), generator=g) for i in range(n)}
-    writer.add_latents(latents, {k: {"prompt": key} for k in latents})
+    writer.add_latents(latents, {k: {"prompt": key, "prompt_task": key} for k in latents})
     return root
 
 

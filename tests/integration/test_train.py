@@ -56,7 +56,11 @@ def test_preprocess_writes_a_resumable_float16_cache(cache, train_split, capsys)
     assert sorted(manifest["examples"]) == ["00000", "00001"]
     assert manifest["latent_shape"] == [48, 3, 4, 8] and manifest["text_dim"] == 32
     assert (manifest["model"], manifest["width"], manifest["height"], manifest["frames"]) == ("tiny", 128, 64, 9)
-    assert all(p["text"].endswith("Motion begins on the first frame.") for p in manifest["prompts"].values())
+    for record in manifest["examples"].values():  # both prompts: with the suffix (evaluation), alone (the release)
+        suffixed, task = manifest["prompts"][record["prompt"]], manifest["prompts"][record["prompt_task"]]
+        assert suffixed["text"].endswith("Motion begins on the first frame.") and suffixed["text"].startswith(task["text"])
+        assert suffixed["rows"] == task["rows"] == 512 and task["tokens"] < suffixed["tokens"] <= 512
+    assert (manifest["resize"], manifest["vae_dtype"]) == ("bicubic", "float32")  # the CPU default
     c = LatentCache(cache)
     assert c.latent(c.ids[0]).dtype == torch.float16 and c.text(c.ids[0]).dtype == torch.float16
     assert main(["preprocess", "--data", str(train_split.parent), "--out", str(cache), "--model", "tiny",

@@ -156,7 +156,8 @@ def test_cache_shards_round_trip_pad_text_and_refuse_other_settings(tmp_path):
     assert text.shape == (2, 6, 4)
     assert text[0, :2].eq(1).all() and text[0, 2:].eq(0).all() and text[1, :3].eq(2).all() and text[1, 3:].eq(0).all()
     manifest = json.loads((tmp_path / "manifest.json").read_text())
-    assert manifest["prompts"][prompt_key("b")] == {"shard": "text-00000.safetensors", "text": "b", "tokens": 3}
+    assert manifest["prompts"][prompt_key("b")] == {"shard": "text-00000.safetensors", "text": "b", "tokens": 3,
+                                                     "rows": 3}
     with pytest.raises(ConfigError, match="frames"):
         CacheWriter(tmp_path, {**settings, "frames": 49})
     with pytest.raises(UserError, match="not a training cache"):

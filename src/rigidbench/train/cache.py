@@ -3,9 +3,10 @@
 ::
 
     CACHE/manifest.json                 settings + what every shard holds (rewritten atomically)
-    CACHE/text-00000.safetensors        "text/<prompt key>": (L, D) float16, the prompt's UMT5 states
-                                        over its L real tokens (zero-padded to text_len when read,
-                                        as the Wan pipeline pads them)
+    CACHE/text-00000.safetensors        "text/<prompt key>": (text_len, D) float16, UMT5's output at
+                                        every position of the padded prompt (version 1: only the
+                                        prompt's L real tokens); the reader keeps the padding
+                                        positions' outputs (the release) or zeros them (the pipeline)
     CACHE/latents-00000.safetensors     "latent/<example id>": (C, F, h, w) float16, the normalised
                                         VAE latent ((z - latents_mean) / latents_std, posterior mode)
     CACHE/part-I-of-N/...               instead, with ``--shard I/N`` or ``--executor ray``: one such cache
@@ -13,12 +14,13 @@
 
 ``manifest.json``::
 
-    {"version": 1, "model": "wan-2.2", "width": 640, "height": 352, "frames": 49,
+    {"version": 2, "model": "wan-2.2", "width": 640, "height": 352, "frames": 49,
      "latent_shape": [48, 13, 22, 40], "text_len": 512, "text_dim": 4096, "dtype": "float16",
-     "prompt_format": ..., "source": {...},
+     "prompt_format": ..., "resize": "bicubic", "vae_dtype": "bfloat16", "source": {...},
      "shards": [{"file": "latents-00000.safetensors", "kind": "latents", "count": 64}, ...],
-     "examples": {"<id>": {"shard": ..., "prompt": "<prompt key>", "task": ..., "source_resolution": [W, H],
-                           "source_frames": T}},
+     "examples": {"<id>": {"shard": ..., "prompt": "<key of task prompt + suffix>",
+                           "prompt_task": "<key of the task prompt alone>", "task": ...,
+                           "source_resolution": [W, H], "source_frames": T}},
      "prompts": {"<prompt key>": {"shard": ..., "text": "<the encoded prompt>", "tokens": L}}}
 
 A shard is written to a temporary file and renamed into place, then the manifest is rewritten the
@@ -41,10 +43,14 @@ import torch
 from ..errors import ConfigError, UserError
 from ..jsonio import write_json
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # version 1: one prompt per example (with the suffix), real tokens only
 MANIFEST = "manifest.json"
 #: manifest settings that a rerun (and a training run) must agree with
-SETTINGS_KEYS = ("version", "model", "width", "height", "frames", "text_len", "dtype", "prompt_format")
+SETTINGS_KEYS = ("version", "model", "width", "height", "frames", "text_len", "dtype", "prompt_format", "resize",
+                 "vae_dtype")
+#: text.prompt of a training configuration -> the example record's key of that prompt
+PROMPT_FIELDS = {"task+suffix": "prompt", "task": "prompt_task"}
 
 
 def prompt_key(text: str) -> str:
@@ -109,9 +115,9 @@ def read_manifest(cache_dir: str | Path) -> dict[str, Any]:
         manifest = json.loads(path.read_text())
     except ValueError as exc:
         raise UserError(f"{path}: unreadable manifest ({exc}); delete the cache and preprocess again") from None
-    if manifest.get("version") != CACHE_VERSION:
-        raise UserError(f"{path}: cache version {manifest.get('version')}, this RigidBench reads version "
-                        f"{CACHE_VERSION}; preprocess again into a new directory")
+    if manifest.get("version") not in READABLE_VERSIONS:
+        raise UserError(f"{path}: cache version {manifest.get('version')}, this RigidBench reads versions "
+                        f"{', '.join(map(str, READABLE_VERSIONS))}; preprocess again into a new directory")
     return manifest
 
 
@@ -155,14 +161,17 @@ class CacheWriter:
         self.manifest.update(fields)
         self._save_manifest()
 
-    def add_text(self, embeddings: dict[str, torch.Tensor], texts: dict[str, str]) -> str:
-        """Write one text shard: prompt key -> (L, D) embedding; returns the shard's file name."""
+    def add_text(self, embeddings: dict[str, torch.Tensor], texts: dict[str, str],
+                 tokens: dict[str, int] | None = None) -> str:
+        """Write one text shard: prompt key -> (rows, D) embedding, of which the first ``tokens[key]`` rows
+        are the prompt's real tokens (default: all rows); returns the shard's file name."""
         name = self._next_file("text")
         _atomic_safetensors(self.dir / name, {f"text/{k}": v.to(torch.float16).cpu() for k, v in embeddings.items()},
                             {"kind": "text", "model": str(self.manifest["model"])})
         self.manifest["shards"].append({"file": name, "kind": "text", "count": len(embeddings)})
         for k, v in embeddings.items():
-            self.manifest["prompts"][k] = {"shard": name, "text": texts[k], "tokens": int(v.shape[0])}
+            n = int(v.shape[0]) if tokens is None else int(tokens[k])
+            self.manifest["prompts"][k] = {"shard": name, "text": texts[k], "tokens": n, "rows": int(v.shape[0])}
         self._save_manifest()
         return name
 
@@ -218,18 +227,59 @@ class LatentCache:
         """(C, F, h, w) float16."""
         return self._get(self.manifest["examples"][example_id]["shard"], f"latent/{example_id}")
 
-    def text(self, example_id: str) -> torch.Tensor:
-        """(L, D) float16 over the prompt's real tokens."""
-        key = self.manifest["examples"][example_id]["prompt"]
+    def prompt_key(self, example_id: str, prompt: str = "task+suffix") -> str:
+        """The key of the prompt ``prompt`` ("task+suffix" or "task") of an example; ConfigError when the cache
+        does not hold that prompt (a version-1 cache holds only the task prompt with the suffix)."""
+        field = PROMPT_FIELDS.get(prompt)
+        if field is None:
+            raise ConfigError(f"unknown text.prompt {prompt!r}; known: {', '.join(PROMPT_FIELDS)}")
+        key = self.manifest["examples"][example_id].get(field)
+        if key is None:
+            raise ConfigError(f"{self.dir}: the cache holds no '{prompt}' prompt for {example_id} (cache version "
+                              f"{self.manifest.get('version')}); preprocess again into a new directory, or train "
+                              "with --set text.prompt=task+suffix")
+        return key
+
+    def text(self, example_id: str, prompt: str = "task+suffix") -> torch.Tensor:
+        """(rows, D) float16: UMT5's output for the example's prompt, all text_len positions (version 1:
+        the real tokens only)."""
+        key = self.prompt_key(example_id, prompt)
         return self._get(self.manifest["prompts"][key]["shard"], f"text/{key}")
 
-    def batch(self, indices, device=None, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
-        """Examples ``indices`` (into ``ids``) -> latents (B, C, F, h, w) and text (B, text_len, D),
-        the text zero-padded after its real tokens as the Wan pipeline pads prompt embeddings."""
+    def tokens(self, example_id: str, prompt: str = "task+suffix") -> int:
+        """How many of the prompt's rows are real tokens (the rest are padding positions)."""
+        return int(self.manifest["prompts"][self.prompt_key(example_id, prompt)]["tokens"])
+
+    def check_text(self, prompt: str, padding: str) -> None:
+        """ConfigError (naming the cache and the setting) when a training run's text.prompt / text.padding
+        cannot be served by this cache."""
+        if not self.ids:
+            return
+        example = self.ids[0]
+        key = self.prompt_key(example, prompt)
+        if padding not in ("zeros", "encoder"):
+            raise ConfigError(f"unknown text.padding {padding!r}; known: encoder, zeros")
+        record = self.manifest["prompts"][key]
+        if padding == "encoder" and int(record.get("rows", record["tokens"])) < self.text_len:
+            raise ConfigError(f"{self.dir}: the cache stores only each prompt's real tokens (cache version "
+                              f"{self.manifest.get('version')}), not UMT5's outputs at the padding positions that "
+                              "text.padding=encoder uses; preprocess again into a new directory, or train with "
+                              "--set text.padding=zeros")
+
+    def batch(self, indices, device=None, dtype=torch.float32, prompt: str = "task+suffix",
+              padding: str = "zeros") -> tuple[torch.Tensor, torch.Tensor]:
+        """Examples ``indices`` (into ``ids``) -> latents (B, C, F, h, w) and text (B, text_len, D) of prompt
+        ``prompt`` ("task+suffix" or "task"). ``padding="zeros"``: the rows after the prompt's real tokens
+        are zero, as the Wan pipeline pads prompt embeddings; ``"encoder"``: they are UMT5's outputs at
+        the padding positions, as the release's cache stored them."""
         ids = [self.ids[i] for i in indices]
         latents = torch.stack([self.latent(i) for i in ids]).to(device=device, dtype=dtype)
         text = torch.zeros(len(ids), self.text_len, self.text_dim, dtype=dtype, device=device)
         for row, example_id in enumerate(ids):
-            t = self.text(example_id)[: self.text_len]
+            t = self.text(example_id, prompt)[: self.text_len]
+            if padding == "zeros":
+                t = t[: self.tokens(example_id, prompt)]
+            elif t.shape[0] < self.text_len:
+                self.check_text(prompt, padding)
             text[row, : t.shape[0]] = t.to(device=device, dtype=dtype)
         return latents, text

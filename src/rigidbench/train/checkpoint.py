@@ -16,9 +16,10 @@
         config.json                  full: WanTransformer3DModel.save_pretrained
         diffusion_pytorch_model.safetensors
         checkpoint.json              step, mode, base model, examples seen, config digest (written last)
-    RUN/training_state/step-500/     the resumable state of the same update (removed from all but the
-                                     newest ``keep_training_states`` when that setting is above 0):
-        dcp/                         torch.distributed.checkpoint: the trainable weights (float32) and
+    RUN/training_state/step-500/     the resumable state of the same update, removed from all but the
+                                     newest ``keep_training_states`` (1 in the packaged configurations:
+                                     a full fine-tuning state is ~60 GB; 0 keeps every one):
+        dcp/                         torch.distributed.checkpoint: the trainable weights (``master_weights``) and
                                      the AdamW state, one file per process (reshardable on load)
         scheduler.pt                 the learning-rate scheduler's state
         rng-rank<r>.pt               torch CPU/CUDA and Python RNG states of process r
@@ -26,7 +27,8 @@
 
 ``rigidbench predict wan-2.2 --checkpoint RUN/checkpoints/step-500`` loads either kind (the LoRA
 directory as a PEFT adapter, the full one as a transformer directory); the exported weights are in
-``export_dtype``. The training state lives beside the export, not in it, so removing it never
+``export_dtype``. ``load.py`` reads the authors' release's formats too (DiffSynth-named LoRA and full
+state dicts, Lightning ``.ckpt``). The training state lives beside the export, not in it, so removing it never
 changes the files the predictor fingerprints. Both directories are written as ``step-N.tmp`` and
 renamed when complete (the state first), so a directory without ``.tmp`` is finished. Restarting
 ``train`` with the same ``--out`` loads the highest step that has both: weights, optimizer,

@@ -26,7 +26,8 @@ def cmd_preprocess(args, ctx: RunContext) -> int:
         return _preprocess_on_ray(args, model_path, device)
     summary = run_preprocess(args.data, args.out, model=args.model, split=args.split, limit=args.limit,
                              model_path=model_path, device=device, shard_size=args.shard_size,
-                             progress=not args.no_progress, shard=Shard.parse(args.shard))
+                             progress=not args.no_progress, shard=Shard.parse(args.shard), resize=args.resize,
+                             vae_dtype=args.vae_dtype)
     print(f"preprocess ({args.model}, {summary.device}): {len(summary.encoded)} clips and {summary.prompts_encoded} "
           f"prompts encoded into {summary.cache} ({len(summary.skipped)} clips already there), "
           f"{len(summary.failed)} failed")
@@ -41,7 +42,7 @@ def _preprocess_on_ray(args, model_path: str | None, device: str | None) -> int:
     shards = args.ray_shards or executor.default_workers(Resources(num_gpus=0 if device == "cpu" else 1))
     job = {"data": str(Path(args.data).resolve()), "out": str(Path(args.out).resolve()), "model": args.model,
            "split": args.split, "limit": args.limit, "model_path": model_path, "device": device,
-           "shard_size": args.shard_size, "shards": shards}
+           "shard_size": args.shard_size, "shards": shards, "resize": args.resize, "vae_dtype": args.vae_dtype}
     results = executor.map("rigidbench.train.preprocess:PreprocessWorker", job, list(range(shards)),
                            Resources(num_cpus=1, num_gpus=0 if device == "cpu" else 1))
     encoded = sum(len(r.get("encoded", [])) for _, r in results)
@@ -81,6 +82,10 @@ def add_commands(subparsers) -> None:
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
     p.add_argument("--limit", type=int, help="only the first N bundles (sorted by id)")
     p.add_argument("--shard-size", type=int, default=64, help="clips per latent shard (default 64)")
+    p.add_argument("--resize", choices=("bicubic", "lanczos"), default="bicubic",
+                   help="frame resize filter: bicubic (PIL's default, the authors' release; default) or lanczos")
+    p.add_argument("--vae-dtype", choices=("auto", "bfloat16", "float32"), default="auto",
+                   help="VAE precision: auto (bfloat16 on a GPU, as the release; float32 on the CPU)")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--executor", choices=("local", "ray"), default="local",

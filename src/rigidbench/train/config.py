@@ -29,6 +29,14 @@ PRECISIONS = ("bf16", "fp32")
 INITS = ("pretrained", "random")
 EXPORT_DTYPES = ("float32", "bfloat16", "float16")
 NAMED_CONFIGS = ("lora", "full", "tiny")
+#: the recipe options where our trainer and the authors' release differ (docs/finetuning.md); the first
+#: value of each is the release's behaviour
+TEXT_PROMPTS = ("task", "task+suffix")            # text.prompt: the task prompt alone | with the paper's suffix
+TEXT_PADDINGS = ("encoder", "zeros")              # text.padding: UMT5's outputs at the padding positions | zeros
+CLEAN_SLOT_TIMESTEPS = ("noisy", "zero")          # objective.clean_slot_timestep: t on every token | 0 on slot 0
+DRAWS = ("shared", "per_rank")                    # objective.draws: one timestep and noise for all ranks | per rank
+OBJECTIVE_DTYPES = ("bfloat16", "float32")        # objective.dtype: timestep, noised latent and target precision
+MASTER_WEIGHTS = ("float32", "bfloat16")          # master_weights: dtype of the trained weights and AdamW state
 
 
 @dataclass(frozen=True)
@@ -91,14 +99,21 @@ class TrainConfig:
     optimizer_grad_clip: float
     schedule_warmup_steps: int
     schedule_horizon_steps: int
+    schedule_first_step: int        # the schedule's index of the first update: 0 (the release: lr 0) or 1
     max_steps: int
     checkpoint_every: int
     keep_training_states: int       # training_state/ kept in the newest N checkpoints (0: all); exports stay
+    master_weights: str             # float32 | bfloat16 (the release: weights, gradients and AdamW state in bf16)
     gradient_checkpointing: bool
     precision: str                  # bf16 (GPU; the CPU runs fp32 and records it) | fp32
     seed: int
     objective_num_train_timesteps: int
     objective_shift: float
+    objective_clean_slot_timestep: str  # noisy (the release) | zero: the timestep of the clean first slot's tokens
+    objective_draws: str            # shared (the release: every rank draws the same t and noise) | per_rank
+    objective_dtype: str            # bfloat16 (the release) | float32: timestep, noised latent and target
+    text_prompt: str                # task (the release) | task+suffix: which cached prompt conditions training
+    text_padding: str               # encoder (the release) | zeros: the text context after the prompt's tokens
     export_dtype: str               # dtype of the exported LoRA adapter / transformer checkpoint
     log_every: int
     source: str = ""                # where the settings came from (file and overrides)
@@ -179,6 +194,12 @@ def _choice(choices):
     return check
 
 
+def _first_step(v):
+    if _int(v, 0) not in (0, 1):
+        raise ValueError(f"expected 0 (the release: the first update runs at the schedule's value at 0) or 1, got {v}")
+    return v
+
+
 def _str_list(v):
     if isinstance(v, str):
         v = [v]
@@ -225,14 +246,21 @@ KEYS: dict[str, Any] = {
     "optimizer.grad_clip": lambda v: _float(v, positive=True),
     "schedule.warmup_steps": lambda v: _int(v, 0),
     "schedule.horizon_steps": lambda v: _int(v, 1),
+    "schedule.first_step": _first_step,
     "max_steps": lambda v: _int(v, 1),
     "checkpoint_every": lambda v: _int(v, 1),
     "keep_training_states": lambda v: _int(v, 0),
+    "master_weights": _choice(MASTER_WEIGHTS),
     "gradient_checkpointing": _bool,
     "precision": _choice(PRECISIONS),
     "seed": lambda v: _int(v, 0),
     "objective.num_train_timesteps": lambda v: _int(v, 2),
     "objective.shift": lambda v: _float(v, positive=True),
+    "objective.clean_slot_timestep": _choice(CLEAN_SLOT_TIMESTEPS),
+    "objective.draws": _choice(DRAWS),
+    "objective.dtype": _choice(OBJECTIVE_DTYPES),
+    "text.prompt": _choice(TEXT_PROMPTS),
+    "text.padding": _choice(TEXT_PADDINGS),
     "export_dtype": _choice(EXPORT_DTYPES),
     "log_every": lambda v: _int(v, 1),
 }

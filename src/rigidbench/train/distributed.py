@@ -90,17 +90,18 @@ def wrap_ddp(model, info: DistInfo):
     return DistributedDataParallel(model, device_ids=ids, find_unused_parameters=False)
 
 
-def wrap_fsdp(model, info: DistInfo, bf16: bool):
+def wrap_fsdp(model, info: DistInfo, bf16: bool, reduce_dtype=torch.float32):
     """FSDP2 full sharding: one unit per transformer block, then the root (the paper's "wrapped by DiT
-    block"); bf16 parameters in forward/backward with float32 gradient reduction when ``bf16``; the
-    float32 master weights, gradients and AdamW state stay sharded."""
+    block"); bf16 parameters in forward/backward with ``reduce_dtype`` gradient reduction (float32;
+    the release's bfloat16 with ``master_weights: bfloat16``) when ``bf16``; the master weights,
+    gradients and AdamW state stay sharded."""
     from torch.distributed.fsdp import MixedPrecisionPolicy, fully_shard
 
     kwargs = {}
     if bf16:
         # inputs keep their dtype: the float32 per-token timesteps must not be rounded to bfloat16 (the
         # pipeline passes them in float32); the forward pass runs under bf16 autocast anyway
-        kwargs["mp_policy"] = MixedPrecisionPolicy(param_dtype=torch.bfloat16, reduce_dtype=torch.float32,
+        kwargs["mp_policy"] = MixedPrecisionPolicy(param_dtype=torch.bfloat16, reduce_dtype=reduce_dtype,
                                                    cast_forward_inputs=False)
     for block in model.blocks:
         fully_shard(block, **kwargs)

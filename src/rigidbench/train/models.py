@@ -93,17 +93,24 @@ def clean_prompt(text: str) -> str:
 
 
 @torch.no_grad()
-def encode_prompts(tokenizer, encoder, prompts: list[str], text_len: int) -> list[torch.Tensor]:
-    """Each prompt's UMT5 hidden states over its real tokens, as the Wan pipeline computes them
-    (cleaned, padded to ``text_len``, truncated there, ``</s>`` appended, attention-masked): a list
-    of (L_i, D) tensors. The pipeline zero-pads them to ``text_len``; the cache stores them unpadded."""
+def encode_prompts_padded(tokenizer, encoder, prompts: list[str], text_len: int) -> list[tuple[torch.Tensor, int]]:
+    """Each prompt's UMT5 hidden states at all ``text_len`` positions (cleaned, padded to ``text_len``,
+    truncated there, ``</s>`` appended, attention-masked, as the Wan pipeline and DiffSynth tokenize),
+    with the number L_i of real tokens: a list of ((text_len, D) tensor, L_i). The rows after L_i are
+    the encoder's output at the padding positions: the pipeline zeroes them, the release kept them."""
     device = next(encoder.parameters()).device
     inputs = tokenizer([clean_prompt(p) for p in prompts], padding="max_length", max_length=text_len,
                        truncation=True, add_special_tokens=True, return_attention_mask=True, return_tensors="pt")
     ids, mask = inputs.input_ids.to(device), inputs.attention_mask.to(device)
     hidden = encoder(ids, mask).last_hidden_state
     lengths = mask.gt(0).sum(dim=1).tolist()
-    return [h[:n] for h, n in zip(hidden, lengths)]
+    return [(h, int(n)) for h, n in zip(hidden, lengths)]
+
+
+def encode_prompts(tokenizer, encoder, prompts: list[str], text_len: int) -> list[torch.Tensor]:
+    """Each prompt's UMT5 hidden states over its real tokens, as the Wan pipeline computes them: a list
+    of (L_i, D) tensors (``encode_prompts_padded`` without the padding positions)."""
+    return [h[:n] for h, n in encode_prompts_padded(tokenizer, encoder, prompts, text_len)]
 
 
 @torch.no_grad()

@@ -42,9 +42,12 @@ def training_weights(num_train_timesteps: int = 1000, shift: float = 5.0) -> np.
 
 
 def lr_factor(update: int, warmup_steps: int, horizon_steps: int) -> float:
-    """Multiplier of the base learning rate for optimizer update ``update`` (1-based): linear warm-up
-    to 1 at update ``warmup_steps``, then a cosine to 0 at update ``horizon_steps`` (0 after)."""
-    if update <= warmup_steps:
+    """Multiplier of the base learning rate at schedule index ``update``: linear warm-up to 1 at index
+    ``warmup_steps``, then a cosine to 0 at index ``horizon_steps`` (0 after). This is transformers'
+    ``get_cosine_schedule_with_warmup``. Which index an optimizer update runs at is the trainer's
+    ``schedule.first_step``: the release's update k runs at index k - 1 (its first at 0, so at lr 0),
+    ``first_step: 1`` runs update k at index k."""
+    if warmup_steps > 0 and update <= warmup_steps:
         return update / warmup_steps
     progress = min(1.0, (update - warmup_steps) / (horizon_steps - warmup_steps))
     return 0.5 * (1.0 + math.cos(math.pi * progress))

@@ -2,7 +2,9 @@
 
 One update (``step``) is ``grad_accum`` local batches of ``batch_size`` cached examples on each of the
 ``world_size`` processes. For each local batch the objective (``objective.py``) draws one timestep
-index and the noise from a generator seeded by (seed, step, local batch, rank); the examples are
+index and the noise from a generator seeded by (seed, step, local batch, rank) with
+``objective.draws: per_rank``, or by (seed, step, local batch, 0) on every rank with ``shared`` (the
+release: its ranks were seeded alike, so all drew the same timestep and noise); the examples are
 read in a seeded random order, a fresh permutation per pass over the cache, dealt out by global
 position (rank r takes positions r*B .. r*B+B-1 of each group of world_size*B). The data position
 is therefore the number of examples seen, and a resumed run draws exactly what an uninterrupted one
@@ -11,10 +13,13 @@ draws.
 LoRA (``mode: lora``): peft adapters of rank ``lora.rank`` on ``lora.target_modules`` of every
 block; the base weights are frozen (bfloat16 on a GPU) and the adapters train in float32.
 Full (``mode: full``): every transformer weight except ``frozen_modules`` trains, float32 master
-weights; FSDP2 casts them to bfloat16 for compute on a GPU. Both run the forward pass under bf16
-autocast on a GPU and in float32 on the CPU (``run.json`` records which), compute the loss in
-float32, clip the gradient norm, and step a (fused where available) AdamW and the warm-up + cosine
-learning rate (``schedules.lr_factor``).
+weights; FSDP2 casts them to bfloat16 for compute on a GPU. ``master_weights: bfloat16`` is the
+release's: the whole transformer (adapters too) is stored and updated in bfloat16, and FSDP2 reduces
+gradients in bfloat16. Both run the forward pass under bf16 autocast on a GPU and in float32 on the
+CPU (``run.json`` records which), compute the loss in float32, clip the gradient norm, and step a
+(fused where available) AdamW and the warm-up + cosine learning rate (``schedules.lr_factor``; update
+k runs at schedule index k - 1 + ``schedule.first_step``). The text context is the cache's
+``text.prompt`` with ``text.padding`` (``cache.LatentCache.batch``).
 """
 
 from __future__ import annotations
@@ -61,6 +66,12 @@ def stream_seed(*parts: int) -> int:
     return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
 
 
+def draw_seed(cfg: TrainConfig, step: int, micro: int, rank: int) -> int:
+    """The seed of the timestep and noise draw of (step, local batch) on ``rank``: rank 0's on every rank
+    with ``objective.draws: shared`` (the release), each rank its own with ``per_rank``."""
+    return stream_seed(cfg.seed, step, micro, rank if cfg.objective_draws == "per_rank" else 0)
+
+
 class DataOrder:
     """Global example position -> cache index: a seeded permutation of the cache per pass."""
 
@@ -79,9 +90,12 @@ class DataOrder:
 def build_model(cfg: TrainConfig, info: DistInfo, use_bf16: bool):
     """The transformer with its trainable parameters chosen (and LoRA adapters added), on the device."""
     lora = cfg.mode == "lora"
-    base_dtype = torch.bfloat16 if (lora and use_bf16) else torch.float32
+    bf16_master = cfg.master_weights == "bfloat16"
+    base_dtype = torch.bfloat16 if ((lora and use_bf16) or bf16_master) else torch.float32
     torch.manual_seed(cfg.seed)
     model = load_transformer(cfg.model, cfg.model_path, cfg.init, dtype=base_dtype, device=info.device)
+    if bf16_master:  # the release: DiffSynth loaded every DiT tensor in bfloat16
+        model = model.to(torch.bfloat16)
     if lora:
         from peft import LoraConfig
 
@@ -91,7 +105,7 @@ def build_model(cfg: TrainConfig, info: DistInfo, use_bf16: bool):
                                      target_modules=list(cfg.lora_target_modules), init_lora_weights=True))
         for p in model.parameters():
             if p.requires_grad:
-                p.data = p.data.float()
+                p.data = p.data.to(torch.bfloat16 if bf16_master else torch.float32)
     else:
         model.requires_grad_(True)
         for prefix in cfg.frozen_modules:
@@ -185,12 +199,14 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
 
     model = build_model(cfg, info, use_bf16)
     _check_cache(cache, cfg, model)
+    cache.check_text(cfg.text_prompt, cfg.text_padding)
     patch_size = model.config.patch_size
     n_trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
     wrapper = "none (one process)"
     if info.distributed:
         if cfg.wrapper == "fsdp":
-            model = wrap_fsdp(model, info, bf16=use_bf16)
+            model = wrap_fsdp(model, info, bf16=use_bf16,
+                              reduce_dtype=torch.bfloat16 if cfg.master_weights == "bfloat16" else torch.float32)
             wrapper = "FSDP2 fully_shard per block, then root"
         else:
             model = wrap_ddp(model, info)
@@ -198,7 +214,8 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer, optimizer_impl = make_optimizer(params, cfg)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda e: lr_factor(e + 1, cfg.schedule_warmup_steps, cfg.schedule_horizon_steps))
+        optimizer, lambda e: lr_factor(e + cfg.schedule_first_step, cfg.schedule_warmup_steps,
+                                       cfg.schedule_horizon_steps))
 
     start_step, seen = 0, 0
     latest = ckpt.latest_checkpoint(run_dir)
@@ -213,6 +230,11 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
     facts = {"device": str(info.device), "world_size": info.world_size, "precision": precision,
              "optimizer": optimizer_impl, "wrapper": wrapper, "mode": cfg.mode, "model": cfg.model,
              "init": cfg.init, "examples_per_update": per_step, "paper_examples_per_update": cfg.effective_batch,
+             "master_weights": cfg.master_weights,
+             "recipe": {"text": {"prompt": cfg.text_prompt, "padding": cfg.text_padding},
+                        "objective": {"clean_slot_timestep": cfg.objective_clean_slot_timestep,
+                                      "draws": cfg.objective_draws, "dtype": cfg.objective_dtype},
+                        "schedule_first_step": cfg.schedule_first_step},
              "trainable_parameters": n_trainable,
              "cache": str(cache_dir.resolve()), "cache_examples": len(cache)}
     if info.is_main:
@@ -222,7 +244,9 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
         ckpt.append_run_record(run_dir, {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                                          "start_step": start_step, **facts, "versions": _versions()})
 
-    objective = FlowMatchingObjective(cfg.objective_num_train_timesteps, cfg.objective_shift, patch_size)
+    objective = FlowMatchingObjective(cfg.objective_num_train_timesteps, cfg.objective_shift, patch_size,
+                                      clean_slot_timestep=cfg.objective_clean_slot_timestep, dtype=cfg.objective_dtype)
+    input_dtype = torch.bfloat16 if cfg.master_weights == "bfloat16" else None
     order = DataOrder(len(cache), cfg.seed)
     summary = TrainSummary(run_dir, start_step, start_step, facts=facts)
     bar = tqdm(total=cfg.max_steps, initial=start_step, unit="step", desc="train",
@@ -239,8 +263,9 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
                 base = seen + (step - start_step) * per_step + micro * info.world_size * cfg.batch_size
                 first = base + info.rank * cfg.batch_size
                 indices = [order(first + j) for j in range(cfg.batch_size)]
-                latents, text = cache.batch(indices, device=info.device)
-                g = torch.Generator().manual_seed(stream_seed(cfg.seed, step, micro, info.rank))
+                latents, text = cache.batch(indices, device=info.device, prompt=cfg.text_prompt,
+                                            padding=cfg.text_padding)
+                g = torch.Generator().manual_seed(draw_seed(cfg, step, micro, info.rank))
                 index, noise = objective.draw(g, latents.shape)
                 batch = objective.prepare(latents, noise.to(info.device), index)
                 if hasattr(model, "set_requires_gradient_sync"):  # FSDP2
@@ -248,7 +273,8 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
                 sync = model.no_sync() if (hasattr(model, "no_sync") and not last) else contextlib.nullcontext()
                 with sync:
                     with torch.autocast(info.device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                        pred = transformer_prediction(model, batch, text)
+                        pred = transformer_prediction(model, batch, text if input_dtype is None else
+                                                      text.to(input_dtype), input_dtype=input_dtype)
                     loss = objective.loss(pred, batch)
                     (loss / cfg.grad_accum).backward()
                 losses.append(float(loss.detach()))
