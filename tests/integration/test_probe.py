@@ -37,6 +37,11 @@ def test_probe_end_to_end_on_tiny(data_and_cache, tmp_path):
     assert man["token_grid"] == [3, 2, 4] and man["blocks"] == 2 and man["width"] == 24
     assert sorted(man["splits"].values()) == ["test", "train", "train", "val"]
     assert [p["tau"] for p in man["schedule"]] == [0.1, 0.3, 0.5, 0.7, 0.9]
+    sigmas = [p["sigma"] for p in man["schedule"]]
+    assert sigmas == sorted(sigmas, reverse=True)  # tau 0.9 is the least noisy (the paper's and release's tau)
+    assert man["version"] == 2 and man["backbone_seed"] is None
+    rand = json.loads((acts["random"] / "manifest.json").read_text())
+    assert rand["backbone_seed"] == 0 and "RMSNorm" in rand["random_init"]
     assert len(man["chunks"]) == 2
     from rigidbench.probe.store import ActivationStore
 
@@ -72,6 +77,8 @@ def test_probe_end_to_end_on_tiny(data_and_cache, tmp_path):
             assert twin["loss"] == pytest.approx(e["loss"], rel=1e-5, abs=1e-7)
     for b in result["bases"]:
         assert b["alpha_pc"] <= 1.0 and b["rank"] >= 0
+        assert b["version"] == 2 and b["inlp_dtype"] == "float64" and b["train_rows"] == int(0.8 * len(rows["clip"]))
+    assert result["inlp"]["ridge_per_row"] == 0.05 and result["inlp"]["intercept"] is False
     # the hook-based full readout gives the same numbers (bases reused from intv)
     hooked = tmp_path / "intv-hook"
     import shutil

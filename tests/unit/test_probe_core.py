@@ -8,9 +8,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rigidbench.probe.fit import ProbeSettings, fit_cell, r2_score, roc_auc  # noqa: E402
-from rigidbench.probe.inlp import (inlp, project_out, random_orthonormal, ridge_fit,  # noqa: E402
+from rigidbench.probe.fit import ProbeSettings, fit_cell, r2_score, roc_auc, train_probe  # noqa: E402
+from rigidbench.probe.inlp import (inlp, project_out, random_orthonormal, ridge_fit, split_rows,  # noqa: E402
                                    total_variance, variance_matched_alpha, variance_matched_pcs)
+from rigidbench.probe.intervene import fit_bases  # noqa: E402
 from rigidbench.probe.pooling import (max_pool_to_grid, n_slots, pool_actors, pooling_matrix,  # noqa: E402
                                       slot_frames, slot_token_masks)
 from rigidbench.probe.targets import slot_targets  # noqa: E402
@@ -58,6 +59,129 @@ def test_scores_edge_cases():
     assert np.isnan(roc_auc(np.ones(5), np.arange(5)))
     assert r2_score(np.arange(5.0), np.arange(5.0)) == pytest.approx(1.0)
     assert r2_score(np.arange(5.0), np.full(5, 2.0)) == pytest.approx(0.0)
+    assert np.isnan(r2_score(np.ones((5, 2)), np.zeros((5, 2))))
+
+
+def release_r2(y, pred):
+    """The release's R^2, written out: 1 - sum of squared residuals / sum of squared deviations from
+    each column's mean, both summed over rows and columns."""
+    y, pred = np.asarray(y, np.float64), np.asarray(pred, np.float64)
+    ss_res = sum(float((y[i, j] - pred[i, j]) ** 2) for i in range(len(y)) for j in range(y.shape[1]))
+    means = [float(np.mean(y[:, j])) for j in range(y.shape[1])]
+    ss_tot = sum(float((y[i, j] - means[j]) ** 2) for i in range(len(y)) for j in range(y.shape[1]))
+    return 1.0 - ss_res / ss_tot
+
+
+def test_r2_is_pooled_over_the_target_dimensions_as_in_the_release():
+    rng = np.random.default_rng(4)
+    y = rng.standard_normal((200, 3)) * np.array([10.0, 1.0, 0.1])  # dimensions of very different spread
+    pred = y + rng.standard_normal(y.shape) * 0.5                   # the same error on every dimension
+    pooled = release_r2(y, pred)
+    assert r2_score(y, pred) == pytest.approx(pooled, abs=1e-12)
+    per_dim = np.mean([1 - np.sum((y[:, j] - pred[:, j]) ** 2) / np.sum((y[:, j] - y[:, j].mean()) ** 2)
+                       for j in range(3)])
+    assert r2_score(y, pred, "mean") == pytest.approx(per_dim, abs=1e-12)
+    assert pooled > 0.99 and per_dim < 0.0  # the two definitions really differ here
+
+
+def test_linear_probe_is_fit_on_raw_values_and_scored_by_pooled_r2_as_in_the_release():
+    rng = np.random.default_rng(5)
+    n, d = 1200, 16
+    x = (rng.standard_normal((n, d)) + 2.0).astype(np.float32)            # uncentred activations
+    y = (x @ rng.standard_normal((d, 3)) * [3.0, 1.0, 0.2] + [5.0, -1.0, 0.5]
+         + 0.3 * rng.standard_normal((n, 3))).astype(np.float32)
+    tr, va, te = splits(x, y)
+    settings = ProbeSettings(epochs=30, batch_size=64, lr=1e-2, seed=0)
+    got = fit_cell(tr, va, te, "linear", False, "trained", settings)
+    # independent: a linear layer trained on the raw rows (same initial weights and batch order), pooled R^2
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        net = torch.nn.Linear(d, 3)
+    gen = torch.Generator().manual_seed(0)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    xt, yt = torch.as_tensor(tr[0]), torch.as_tensor(tr[1])
+    for _ in range(30):
+        order = torch.randperm(len(xt), generator=gen)
+        for s in range(0, len(xt), 64):
+            idx = order[s:s + 64]
+            opt.zero_grad()
+            torch.nn.functional.mse_loss(net(xt[idx]), yt[idx]).backward()
+            opt.step()
+    with torch.no_grad():
+        pred = net(torch.as_tensor(te[0])).double().numpy()
+    assert got["metric"] == "r2"
+    assert got["test"] == pytest.approx(release_r2(te[1], pred), abs=1e-5)
+    assert got["test"] > 0.5  # it learns (20-30 epochs of Adam on raw values do not fully converge)
+    # standardising stays available as an option and gives another fit
+    std = fit_cell(tr, va, te, "linear", False, "trained", ProbeSettings(epochs=30, batch_size=64, lr=1e-2,
+                                                                         standardize=True))
+    assert std["test"] > 0.5 and std["test"] != pytest.approx(got["test"], abs=1e-6)
+    probe, _ = train_probe(tr[0], tr[1], "linear", False, ProbeSettings(epochs=1, standardize=False))
+    assert np.all(probe.x_stats[0] == 0) and np.all(probe.x_stats[1] == 1)
+
+
+def release_inlp(x, y, reg=0.05, eps=0.05, max_iters=30, seed=0, tol=1e-6):
+    """The release's INLP steps written out directly (float64 numpy): 80/20 split by torch.randperm,
+    ridge without intercept on the projected rows with penalty reg * N, pooled training R^2, projection
+    of the rows onto the nullspace of each added regressor, rank of the stacked regressors."""
+    perm = torch.randperm(len(x), generator=torch.Generator().manual_seed(seed)).numpy()
+    xp = np.asarray(x, np.float64)[perm[: int(0.8 * len(x))]]
+    yt = np.asarray(y, np.float64)[perm[: int(0.8 * len(x))]]
+    n, d = xp.shape
+    history, collected = [], []
+    for _ in range(max_iters):
+        w = np.linalg.solve(xp.T @ xp + reg * n * np.eye(d), xp.T @ yt).T       # (k, d)
+        r2 = release_r2(yt, xp @ w.T)
+        history.append(r2)
+        if r2 < eps:
+            break
+        collected.append(w)
+        _, s, vh = np.linalg.svd(w, full_matrices=True)
+        null = vh[int((s > tol * s.max()).sum()):].T
+        xp = (xp @ null) @ null.T
+    if not collected:
+        return np.zeros((d, 0)), history
+    _, s, vh = np.linalg.svd(np.concatenate(collected), full_matrices=True)
+    return vh[: int((s > tol * s.max()).sum())].T, history
+
+
+def redundant_position(n=2500, d=48, seed=0):
+    """A 3-d target spread redundantly over many noisy, uncentred features: INLP needs several rounds."""
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n, 3))
+    noise = rng.standard_normal((n, d)) @ (rng.standard_normal((d, d)) * rng.uniform(0.05, 1.0, d)) * 0.5
+    x = z @ rng.standard_normal((3, d)) + noise + 2.0  # correlated noise: each regressor leaves some signal
+    y = z + np.array([1.0, 0.5, -2.0])
+    return x.astype(np.float32), y
+
+
+def test_inlp_rank_and_r2_path_equal_the_release_computation():
+    x, y = redundant_position()
+    basis_ref, history_ref = release_inlp(x, y)
+    res = inlp(x, y, device="cpu")
+    assert res.rank == basis_ref.shape[1] and res.rank > 6     # several rounds, not one
+    assert res.train_r2 == pytest.approx(history_ref, abs=1e-8)
+    assert np.allclose(res.basis @ res.basis.T, basis_ref @ basis_ref.T, atol=1e-8)
+    assert res.train_rows == int(0.8 * len(x)) and res.stopped == "r2"
+    # float32 Gram and solves land on the same subspace here
+    r32 = inlp(x, y, device="cpu", dtype=torch.float32)
+    assert r32.rank == res.rank and np.allclose(r32.basis @ r32.basis.T, res.basis @ res.basis.T, atol=1e-3)
+
+
+def test_fit_bases_controls_come_from_the_inlp_training_rows():
+    x, y = redundant_position(n=1500, d=24, seed=2)
+    cell = fit_bases(x, y, device="cpu")
+    tr, _ = split_rows(len(x))
+    xt = x[tr].astype(np.float64)
+    cov = np.cov(xt.T)
+    b = cell["position"]
+    assert cell["removed_variance"] == pytest.approx(np.trace(b.T @ cov @ b), rel=1e-8)
+    assert cell["total_variance"] == pytest.approx(np.trace(cov), rel=1e-8)
+    pc = variance_matched_pcs(xt, b)
+    assert cell["k_pc"] == pc.k and cell["alpha_pc"] == pytest.approx(pc.alpha, rel=1e-8)
+    g = torch.randn(x.shape[1], cell["rank"], generator=torch.Generator().manual_seed(1), dtype=torch.float32)
+    q = np.linalg.qr(g.double().numpy())[0]  # the release's random control: seed + 1, float32 draws, QR
+    assert np.allclose(np.abs(cell["random"].T @ q), np.eye(cell["rank"]), atol=1e-8)
 
 
 def test_inlp_removes_a_planted_low_rank_subspace():
@@ -72,12 +196,13 @@ def test_inlp_removes_a_planted_low_rank_subspace():
     assert b.shape[0] == d and res.rank == 2 * (len(res.train_r2) - 1)
     assert np.allclose(b.T @ b, np.eye(res.rank), atol=1e-8)
     xr = project_out(x, b)
-    w, c = ridge_fit(xr[:2400], y[:2400], 0.05)
-    assert r2_score(y[2400:], xr[2400:] @ w + c) < 0.05
-    assert r2_score(y[:2400], xr[:2400] @ w + c) < 0.05
-    # the planted directions lie in the removed subspace
+    w = ridge_fit(xr[:2400], y[:2400], 0.05)
+    assert r2_score(y[2400:], xr[2400:] @ w) < 0.05
+    assert r2_score(y[:2400], xr[:2400] @ w) < 0.05
+    # the planted directions lie in the removed subspace (up to the ridge's shrinkage, 0.05 per row, acting
+    # on the sample covariance's spread)
     planted_dirs = np.eye(d)[:, :3] @ m
-    assert np.linalg.norm(project_out(planted_dirs.T, b)) < 1e-3 * np.linalg.norm(planted_dirs)
+    assert np.linalg.norm(project_out(planted_dirs.T, b)) < 1e-2 * np.linalg.norm(planted_dirs)
     rnd = random_orthonormal(d, res.rank, seed=0)
     assert rnd.shape == b.shape and np.allclose(rnd.T @ rnd, np.eye(res.rank), atol=1e-10)
 

@@ -21,11 +21,26 @@ def tiny_setup():
     return transformer, latent, text
 
 
-def test_schedule_points():
+def test_schedule_points_follow_the_release_mapping_tau_09_least_noisy():
+    # independent: DiffSynth's training schedule (shift 5, sigma_min 0, extra_one_step) and the release's
+    # timestep_by_fraction, idx = round(frac * (len(timesteps) - 1))
+    s = np.linspace(1.0, 0.0, 1001)[:-1]
+    sigmas = 5 * s / (1 + 4 * s)
     pts = wan.schedule_points(wan.DEFAULT_TAUS)
-    assert [p["index"] for p in pts] == [900, 700, 500, 300, 100]
-    assert pts[2]["sigma"] == pytest.approx(5 * 0.5 / (1 + 4 * 0.5))
-    assert pts[2]["timestep"] == pytest.approx(1000 * pts[2]["sigma"])
+    for p in pts:
+        idx = round(p["tau"] * 999)
+        assert p["index"] == idx
+        assert p["sigma"] == pytest.approx(sigmas[idx], abs=1e-12)
+        assert p["timestep"] == pytest.approx(1000 * sigmas[idx], abs=1e-9)
+    assert [p["index"] for p in pts] == [100, 300, 500, 699, 899]
+    by_tau = {p["tau"]: p["sigma"] for p in pts}
+    assert min(by_tau, key=by_tau.get) == 0.9 and max(by_tau, key=by_tau.get) == 0.1
+    assert by_tau[0.9] == pytest.approx(0.3597, abs=1e-4)
+    # the noised input at tau 0.9 is closer to the clean latent than at tau 0.1
+    latent = torch.randn(48, 3, 4, 8, generator=torch.Generator().manual_seed(0))
+    far = wan.noised_batch(latent, "c", 0.1).noisy[0, :, 1:] - latent[:, 1:]
+    near = wan.noised_batch(latent, "c", 0.9).noisy[0, :, 1:] - latent[:, 1:]
+    assert float(near.norm()) < 0.5 * float(far.norm())
 
 
 def test_noised_batch_keeps_slot_zero_clean_and_noise_is_per_clip(tiny_setup):
@@ -63,11 +78,43 @@ def test_direct_head_and_full_model_coincide_at_the_last_block(tiny_setup):
         assert torch.allclose(wan.forward(transformer, batch, text, "cpu"), out)
 
 
-def test_random_backbone_differs_from_base():
-    base = wan.load_backbone("base", "tiny", None, "cpu")
-    rand = wan.load_backbone("random", "tiny", None, "cpu")
-    assert type(base) is type(rand)
-    assert not torch.equal(base.blocks[0].ffn.net[0].proj.weight, rand.blocks[0].ffn.net[0].proj.weight)
+def test_random_backbone_is_seeded_and_resets_what_the_release_resets():
+    base = wan.load_backbone("base", "tiny", None, "cpu").state_dict()
+    a = wan.load_backbone("random", "tiny", None, "cpu", seed=0).state_dict()
+    b = wan.load_backbone("random", "tiny", None, "cpu", seed=0).state_dict()
+    c = wan.load_backbone("random", "tiny", None, "cpu", seed=1).state_dict()
+    assert a.keys() == base.keys()
+    assert all(torch.equal(a[k], b[k]) for k in a)           # same seed: identical
+    kept = [k for k in a if k.endswith("scale_shift_table") or ".norm_q." in k or ".norm_k." in k]
+    linear = [k for k in a if k.endswith(".weight") and a[k].ndim >= 2]
+    assert kept and len(linear) > 10
+    for k in kept:  # the modulation tables and the query/key RMS norms keep their pretrained values
+        assert torch.equal(a[k], base[k]) and torch.equal(c[k], base[k]), k
+    for k in linear:  # every linear and convolution weight is re-drawn, differently per seed
+        assert not torch.equal(a[k], base[k]) and not torch.equal(a[k], c[k]), k
+        bound = 1 / np.sqrt(np.prod(a[k].shape[1:]))  # PyTorch's default init: U(-1/sqrt(fan_in), +)
+        assert float(a[k].abs().max()) <= bound + 1e-6
+
+
+def test_random_backbone_resets_affine_layer_norms_of_a_trained_model():
+    from rigidbench.train.tiny import tiny_transformer
+
+    trained = tiny_transformer()
+    with torch.no_grad():
+        for p in trained.parameters():
+            p.add_(0.5)
+    before = {k: v.clone() for k, v in trained.state_dict().items()}
+    after = wan.reset_parameters(trained, seed=3).state_dict()
+    assert torch.equal(after["blocks.0.norm2.weight"], torch.ones_like(before["blocks.0.norm2.weight"]))
+    assert torch.equal(after["blocks.0.norm2.bias"], torch.zeros_like(before["blocks.0.norm2.bias"]))
+    assert torch.equal(after["blocks.0.attn1.norm_q.weight"], before["blocks.0.attn1.norm_q.weight"])
+    assert torch.equal(after["scale_shift_table"], before["scale_shift_table"])
+    # the global RNG is left as it was
+    torch.manual_seed(11)
+    x = torch.rand(3)
+    torch.manual_seed(11)
+    wan.reset_parameters(tiny_transformer(), seed=3)
+    assert torch.equal(torch.rand(3), x)
 
 
 def test_checkpoint_backbone_loads_a_saved_transformer_directory(tmp_path):

@@ -41,7 +41,8 @@ def cmd_extract(args, ctx: RunContext) -> int:
     summary = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
                           model_path=None if args.model_path is None else str(args.model_path),
                           taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
-                          limit=args.limit, chunk_size=args.chunk_size, progress=not args.no_progress)
+                          limit=args.limit, chunk_size=args.chunk_size, progress=not args.no_progress,
+                          backbone_seed=args.random_seed)
     print(f"probe extract ({args.backbone}): {len(summary.extracted)} clips, {summary.rows} actor-slot rows into "
           f"{summary.out} ({len(summary.skipped)} already there, {len(summary.failed)} failed) in "
           f"{summary.seconds:.1f} s")
@@ -54,7 +55,8 @@ def cmd_fit(args, ctx: RunContext) -> int:
     fit = load_target("rigidbench.probe.fit:run_fit", "command")
     settings_cls = load_target("rigidbench.probe.fit:ProbeSettings", "command")
     device = resolve_device(args.net_device or ctx.device)
-    settings = settings_cls(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device)
+    settings = settings_cls(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device,
+                            standardize=args.standardize, r2=args.r2)
     records = fit(args.acts, args.out, targets=args.targets.split(",") if args.targets else None,
                   probes=tuple(args.probes.split(",")), blocks=parse_ints(args.blocks, "--blocks"),
                   taus=None if args.taus is None else parse_floats(args.taus, "--taus"), settings=settings,
@@ -69,7 +71,8 @@ def cmd_intervene(args, ctx: RunContext) -> int:
         raise UserError(f"--clips must be at least 1, got {args.clips}")
     result = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"), clips=args.clips,
                  blocks=parse_ints(args.blocks, "--blocks"), n_resamples=args.resamples,
-                 device=args.net_device or ctx.device, progress=not args.no_progress, full_readout=args.full_readout)
+                 device=args.net_device or ctx.device, progress=not args.no_progress, full_readout=args.full_readout,
+                 inlp_dtype=args.inlp_dtype, clip_split=args.clip_split)
     print(f"probe intervene: {len(result['clips'])} clips, {len(result['bases'])} cells into {args.out}")
     for row in result["summary"]:
         print(f"  {row['variant']:>8} {row['readout']:>6}: dL = {row['mean']:.4g} [{row['lo']:.4g}, {row['hi']:.4g}]")
@@ -97,7 +100,10 @@ def add_commands(subparsers) -> None:
     p.add_argument("--out", type=Path, required=True, help="activation store (created; a rerun skips done clips)")
     p.add_argument("--model", choices=("wan-2.2", "tiny"), help="default: the cache's model")
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
-    p.add_argument("--taus", default=PAPER_TAUS, help=f"schedule fractions (default {PAPER_TAUS})")
+    p.add_argument("--taus", default=PAPER_TAUS, help=f"schedule fractions along the training schedule, 0.9 the "
+                                                      f"least noisy (default {PAPER_TAUS})")
+    p.add_argument("--random-seed", type=int, default=0,
+                   help="seed of --backbone random's re-initialisation (default 0, the release's); recorded")
     p.add_argument("--limit", type=int, help="only the first N clips of the cache (sorted by id)")
     p.add_argument("--chunk-size", type=int, default=64, help="clips per shard (default 64)")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
@@ -115,6 +121,11 @@ def add_commands(subparsers) -> None:
     p.add_argument("--batch-size", type=int, default=4096)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--standardize", action="store_true",
+                   help="z-score activations and continuous targets with training statistics (ours; the release, "
+                        "and the default, fit raw values)")
+    p.add_argument("--r2", choices=("pooled", "mean"), default="pooled",
+                   help="R^2 pooled over a target's dimensions (default, the release's) or the mean of per-dimension R^2")
     p.add_argument("--device", dest="net_device", help="where probes train, e.g. cuda or cpu (default: CUDA when "
                                                        "available)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -126,13 +137,18 @@ def add_commands(subparsers) -> None:
     p.add_argument("--cache", type=Path, required=True, help="the cache the store was extracted from")
     p.add_argument("--out", type=Path, required=True, help="output directory (a rerun skips done clips)")
     p.add_argument("--taus", default=INTERVENTION_TAUS, help=f"schedule fractions (default {INTERVENTION_TAUS})")
-    p.add_argument("--clips", type=int, default=100, help="the first N training-split clips (default 100)")
+    p.add_argument("--clips", type=int, default=100, help="the first N clips by id (default 100)")
+    p.add_argument("--clip-split", choices=("all", "train"), default="all",
+                   help="choose them among all the store's clips (default, the release's) or its training split")
     p.add_argument("--blocks", help="comma-separated block indices (default: all)")
     p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples over clips (default 20,000)")
     p.add_argument("--full-readout", choices=("resume", "hook"), default="resume",
                    help="resume: run the remaining blocks from the recorded block output (default); hook: a "
                         "forward hook and a whole forward pass (same numbers, about twice the cost)")
-    p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
+    p.add_argument("--inlp-dtype", choices=("float64", "float32"), default="float64",
+                   help="precision of INLP's Gram matrix and solves (default float64, as the release's ridge)")
+    p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available; INLP runs "
+                                                       "there too)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_intervene)
 

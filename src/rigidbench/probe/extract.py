@@ -58,11 +58,15 @@ def clip_rows(sample: Sample, grid: tuple[int, int, int], frames: int):
     return w, table
 
 
-def _settings(backbone, model, model_path, cache: LatentCache, split_dir: Path, taus, seed, transformer) -> dict:
+def _settings(backbone, model, model_path, cache: LatentCache, split_dir: Path, taus, seed, transformer,
+              backbone_seed=None) -> dict:
     grid = wan.token_grid(cache.latent_shape, transformer.config.patch_size)
-    return {"version": STORE_VERSION, "backbone": str(backbone), "model": model, "model_path": model_path,
+    random = {"backbone_seed": int(backbone_seed), "random_init": wan.RANDOM_INIT} if backbone == "random" else \
+        {"backbone_seed": None}
+    return {"version": STORE_VERSION, "backbone": str(backbone), **random, "model": model, "model_path": model_path,
             "cache": str(Path(cache.dir).resolve()), "data": str(split_dir.resolve()),
-            "schedule": wan.schedule_points(taus), "num_train_timesteps": wan.NUM_TRAIN_TIMESTEPS,
+            "schedule": wan.schedule_points(taus), "tau_mapping": wan.TAU_MAPPING,
+            "num_train_timesteps": wan.NUM_TRAIN_TIMESTEPS,
             "shift": wan.SHIFT, "seed": seed, "latent_shape": list(cache.latent_shape),
             "frames": int(cache.manifest["frames"]), "token_grid": list(grid),
             "blocks": len(transformer.blocks), "width": int(transformer.config.num_attention_heads
@@ -74,7 +78,8 @@ def _settings(backbone, model, model_path, cache: LatentCache, split_dir: Path, 
 
 def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None, model_path: str | None = None,
                 taus=wan.DEFAULT_TAUS, device: str | None = None, limit: int | None = None, chunk_size: int = 64,
-                seed: int = 0, progress: bool = True, dtype=torch.float32) -> ExtractSummary:
+                seed: int = 0, progress: bool = True, dtype=torch.float32,
+                backbone_seed: int = wan.RANDOM_SEED) -> ExtractSummary:
     import time
 
     from safetensors.numpy import save_file
@@ -90,8 +95,8 @@ def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = torch.device(resolve_device(device))
-    transformer = wan.load_backbone(backbone, model, model_path, dev, dtype)
-    settings = _settings(backbone, model, model_path, cache, split_dir, taus, seed, transformer)
+    transformer = wan.load_backbone(backbone, model, model_path, dev, dtype, seed=backbone_seed)
+    settings = _settings(backbone, model, model_path, cache, split_dir, taus, seed, transformer, backbone_seed)
     ids = [i for i in cache.ids if i in bundles][: limit if limit is not None else None]
     summary = ExtractSummary(out=out)
     for i in cache.ids:
@@ -101,7 +106,8 @@ def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None
         import json
 
         manifest = json.loads((out / MANIFEST).read_text())
-        differs = [k for k in ("version", "backbone", "model", "schedule", "seed", "latent_shape", "blocks")
+        differs = [k for k in ("version", "backbone", "backbone_seed", "model", "schedule", "seed", "latent_shape",
+                               "blocks")
                    if manifest.get(k) != settings.get(k)]
         if differs:
             raise UserError(f"{out}: the store was extracted with other settings ({', '.join(differs)}); "

@@ -4,14 +4,16 @@ One cell is fit per block x tau x target x probe class x label condition:
 
 * linear: one affine map D -> k; mlp: D -> 64 -> k with a ReLU hidden layer;
 * Adam, 20 epochs, batch 4,096, learning rate 1e-3, seed 0 (the batch order and the initial weights);
-* continuous targets: MSE loss, test R^2 (uniform average over the target's dimensions, each against
-  the test-set mean); contact: binary cross-entropy, test ROC-AUC;
-* the shuffled control permutes the training labels once (numpy seed 0); validation and test keep theirs.
+* continuous targets: MSE loss, test R^2; contact: binary cross-entropy, test ROC-AUC;
+* the shuffled control permutes the training labels once (seed 0); validation and test keep theirs.
 
-The inputs are standardised with the training rows' mean and standard deviation, and continuous
-targets likewise (predictions mapped back): an affine change of variables, so the linear probe is
-still one affine map of the activation, and R^2 is unaffected. It lets the paper's 20 epochs at
-lr 1e-3 converge on activations whose scale differs by orders of magnitude between blocks.
+As in the authors' release (``probe/fit.py``), which produced the paper's tables, the probe is fit on
+the raw activations and raw targets, and R^2 is pooled over the target's dimensions:
+1 - sum of squared residuals over all dimensions / sum of squared deviations from each dimension's
+test-set mean (``r2_score``). Two choices of ours stay available as explicit options, recorded in
+``fit.json``: ``standardize=True`` (inputs and continuous targets z-scored with training statistics,
+an affine change of variables that keeps the linear probe affine) and ``r2="mean"`` (the uniform
+average of per-dimension R^2).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from .store import ActivationStore, atomic_json
 
 PROBES = ("linear", "mlp")
 LABELS = ("trained", "shuffled")
+R2_KINDS = ("pooled", "mean")
 
 
 @dataclass(frozen=True)
@@ -36,16 +39,26 @@ class ProbeSettings:
     seed: int = 0
     hidden: int = 64
     device: str = "cpu"  # where the probe trains (the batch order is drawn on the CPU either way)
+    standardize: bool = False  # the release fits raw activations and targets; True: z-score both (ours)
+    r2: str = "pooled"         # "pooled" over the target's dimensions (the release) or "mean" per dimension
 
 
-def r2_score(y: np.ndarray, pred: np.ndarray) -> float:
-    """Mean over target dimensions of 1 - SS_res / SS_tot (dimensions with zero variance left out)."""
+def r2_score(y: np.ndarray, pred: np.ndarray, kind: str = "pooled") -> float:
+    """R^2 of ``pred`` for ``y`` (n, k). ``pooled`` (the release's, the default): 1 - SS_res / SS_tot with
+    both sums over every row and dimension, SS_tot about each dimension's mean; NaN when SS_tot is 0.
+    ``mean``: the uniform average over dimensions of each one's R^2 (dimensions with zero variance
+    left out). NaN for fewer than two rows."""
+    if kind not in R2_KINDS:
+        raise ValueError(f"unknown R^2 {kind!r}; use one of {R2_KINDS}")
     y = np.asarray(y, dtype=np.float64).reshape(len(y), -1)
     pred = np.asarray(pred, dtype=np.float64).reshape(len(pred), -1)
     if len(y) < 2:
         return float("nan")
     ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
     ss_res = ((y - pred) ** 2).sum(axis=0)
+    if kind == "pooled":
+        total = float(ss_tot.sum())
+        return 1.0 - float(ss_res.sum()) / total if total > 0 else float("nan")
     ok = ss_tot > 1e-12 * max(1.0, float(np.abs(y).max()) ** 2)
     if not ok.any():
         return float("nan")
@@ -71,8 +84,9 @@ def make_probe(kind: str, d_in: int, d_out: int, hidden: int = 64) -> torch.nn.M
 
 
 def shuffled(y: np.ndarray, seed: int = 0) -> np.ndarray:
-    """The training labels permuted once (rows), with ``seed``."""
-    return y[np.random.default_rng(seed).permutation(len(y))]
+    """The training labels permuted once (rows): ``torch.randperm`` with a CPU generator seeded ``seed``,
+    the release's permutation."""
+    return y[torch.randperm(len(y), generator=torch.Generator().manual_seed(int(seed))).numpy()]
 
 
 def _stats(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,8 +99,8 @@ class FittedProbe:
     """A trained probe with its input (and target) standardisation; ``predict`` returns target units
     (continuous) or logits (binary)."""
 
-    def __init__(self, net, x_stats, y_stats, binary: bool):
-        self.net, self.x_stats, self.y_stats, self.binary = net, x_stats, y_stats, binary
+    def __init__(self, net, x_stats, y_stats, binary: bool, r2: str = "pooled"):
+        self.net, self.x_stats, self.y_stats, self.binary, self.r2 = net, x_stats, y_stats, binary, r2
 
     @torch.no_grad()
     def predict(self, x: np.ndarray) -> np.ndarray:
@@ -98,11 +112,13 @@ class FittedProbe:
 
 def train_probe(x: np.ndarray, y: np.ndarray, kind: str, binary: bool,
                 settings: ProbeSettings = ProbeSettings()) -> tuple[FittedProbe, float]:
-    """Fit one probe on rows ``x`` (n, D), labels ``y`` (n, k); returns it and its last-epoch mean loss."""
+    """Fit one probe on rows ``x`` (n, D), labels ``y`` (n, k) (raw, or z-scored when
+    ``settings.standardize``); returns it and its last-epoch mean loss."""
     x = np.asarray(x, dtype=np.float32)
     y = np.asarray(y, dtype=np.float32).reshape(len(y), -1)
-    x_stats = _stats(x)
-    y_stats = (np.zeros(y.shape[1]), np.ones(y.shape[1])) if binary else _stats(y)
+    identity = (np.zeros(x.shape[1], np.float32), np.ones(x.shape[1], np.float32))
+    x_stats = _stats(x) if settings.standardize else identity
+    y_stats = _stats(y) if settings.standardize and not binary else (np.zeros(y.shape[1]), np.ones(y.shape[1]))
     device = torch.device(settings.device)
     xs = torch.as_tensor((x - x_stats[0]) / x_stats[1], dtype=torch.float32, device=device)
     ys = torch.as_tensor((y - y_stats[0]) / y_stats[1], dtype=torch.float32, device=device)
@@ -125,7 +141,7 @@ def train_probe(x: np.ndarray, y: np.ndarray, kind: str, binary: bool,
             total += float(loss.detach()) * len(idx)
             count += len(idx)
         last = total / max(count, 1)
-    return FittedProbe(net.eval(), x_stats, y_stats, binary), last
+    return FittedProbe(net.eval(), x_stats, y_stats, binary, settings.r2), last
 
 
 def score(probe: FittedProbe, x: np.ndarray, y: np.ndarray) -> float:
@@ -133,7 +149,7 @@ def score(probe: FittedProbe, x: np.ndarray, y: np.ndarray) -> float:
     if len(x) == 0:
         return float("nan")
     pred = probe.predict(np.asarray(x, dtype=np.float32))
-    return roc_auc(y, pred) if probe.binary else r2_score(y, pred)
+    return roc_auc(y, pred) if probe.binary else r2_score(y, pred, probe.r2)
 
 
 def fit_cell(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray],
@@ -148,7 +164,7 @@ def fit_cell(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.nda
         raise ValueError(f"unknown label condition {labels!r}; use one of {LABELS}")
     probe, loss = train_probe(x, y, kind, binary, settings)
     return {"test": score(probe, *test), "val": score(probe, *val), "train_loss": loss,
-            "metric": "roc_auc" if binary else "r2"}
+            "metric": "roc_auc" if binary else ("r2" if settings.r2 == "pooled" else "r2_mean")}
 
 
 # -- the sweep (``rigidbench probe fit``) ------------------------------------------------------------

@@ -1,9 +1,14 @@
 """``rigidbench probe intervene``: remove a fitted subspace at one block and measure Wan's loss change
 (paper appendix E, "Position-Aligned Interventions").
 
-Per block x tau cell: the position basis by INLP on all the store's rows (``inlp.inlp``), a random
+Per block x tau cell: the position basis by INLP on all the store's rows (``inlp.inlp``: the
+release's ridge and pooled R^2, 80/20 row split inside, torch on CUDA when available), a random
 orthonormal basis of the same rank, and the variance-matched top-K principal components with their
-alpha. For each of the first ``clips`` training-split clips, under the same noised latent as
+alpha (variances from INLP's training rows, as in the release). The clips are the first ``clips`` of
+the store's clips sorted by id (``clip_split="all"``, the release's: its first 100 ids of the
+training corpus, whatever their probe split), or of its training-split clips (``"train"``). Bases
+fitted by an older INLP (``BASES_VERSION``) are refitted, not reused. For each chosen clip, under the
+same noised latent as
 extraction: the baseline forward (recording every block's output and the time embedding), then per
 block and variant
 
@@ -39,7 +44,8 @@ from ..stats.bootstrap import bootstrap_ci
 from ..train.cache import LatentCache
 from ..train.objective import FlowMatchingObjective
 from . import model as wan
-from .inlp import inlp, random_orthonormal, removed_variance, total_variance, variance_matched_pcs
+from .inlp import (MAX_ITER, MIN_R2, RIDGE, inlp, random_orthonormal, removed_variance, resolve_device as inlp_device,
+                   total_variance, variance_matched_pcs)
 from .store import ActivationStore, atomic_json, tau_name
 
 VARIANTS = ("position", "pc", "random")
@@ -47,23 +53,31 @@ READOUTS = ("full", "direct")
 DEFAULT_TAUS = (0.3, 0.5, 0.7)
 
 
-def fit_bases(x: np.ndarray, position: np.ndarray, ridge: float = 0.05, min_r2: float = 0.05, max_iter: int = 30,
-              seed: int = 0) -> dict:
-    """The three bases of one cell: {"position", "random", "pc": (D, r) arrays, "alpha_pc", facts...}."""
-    x = np.asarray(x, dtype=np.float64)
-    res = inlp(x, position, ridge=ridge, min_r2=min_r2, max_iter=max_iter, seed=seed)
-    pc = variance_matched_pcs(x, res.basis)
-    return {"position": res.basis, "random": random_orthonormal(x.shape[1], res.rank, seed),
-            "pc": pc.basis, "alpha_pc": pc.alpha, "rank": res.rank, "k_pc": pc.k,
-            "removed_variance": pc.target_variance, "top_k_variance": pc.top_variance,
-            "random_removed_variance": removed_variance(x, random_orthonormal(x.shape[1], res.rank, seed)),
-            "total_variance": total_variance(x), "iterations": len(res.train_r2), "stopped": res.stopped,
-            "train_r2": res.train_r2, "heldout_r2": res.heldout_r2}
+BASES_VERSION = 2  # 2: the release's INLP (uncentred ridge scaled by rows, pooled R^2), controls on its training rows
+
+
+def fit_bases(x: np.ndarray, position: np.ndarray, ridge: float = RIDGE, min_r2: float = MIN_R2,
+              max_iter: int = MAX_ITER, seed: int = 0, device=None, dtype=torch.float64) -> dict:
+    """The three bases of one cell: {"position", "random", "pc": (D, r) arrays, "alpha_pc", facts...}.
+    INLP on all rows (80/20 split inside); the controls from the INLP training rows, as the release."""
+    res = inlp(x, position, ridge=ridge, min_r2=min_r2, max_iter=max_iter, seed=seed, device=device, dtype=dtype,
+               keep_covariance=True)
+    cov = res.covariance
+    pc = variance_matched_pcs(None, res.basis, cov, device=res.device)
+    rand = random_orthonormal(res.basis.shape[0], res.rank, seed + 1)
+    return {"position": res.basis, "random": rand, "pc": pc.basis, "alpha_pc": pc.alpha, "rank": res.rank,
+            "k_pc": pc.k, "removed_variance": pc.target_variance, "top_k_variance": pc.top_variance,
+            "random_removed_variance": removed_variance(None, rand, cov), "total_variance": total_variance(None, cov),
+            "iterations": len(res.train_r2), "stopped": res.stopped, "train_r2": res.train_r2,
+            "heldout_r2": res.heldout_r2, "train_rows": res.train_rows, "heldout_rows": res.heldout_rows,
+            "inlp_seconds": res.seconds, "inlp_device": res.device, "inlp_dtype": res.dtype,
+            "version": BASES_VERSION}
 
 
 def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, blocks=None,
                   n_resamples: int = 20000, device: str | None = None, progress: bool = True,
-                  dtype=torch.float32, full_readout: str = "resume") -> dict:
+                  dtype=torch.float32, full_readout: str = "resume", inlp_dtype=torch.float64,
+                  clip_split: str = "all") -> dict:
     from tqdm import tqdm
 
     store = ActivationStore(acts)
@@ -79,18 +93,23 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
     (out / "bases").mkdir(parents=True, exist_ok=True)
     rows = store.rows
     position = rows["position"].astype(np.float64)
+    inlp_dev = inlp_device(None if device is None else resolve_device(device))
+    inlp_dtype = getattr(torch, inlp_dtype) if isinstance(inlp_dtype, str) else inlp_dtype
 
     # 1. bases per cell (on the full activation corpus)
     bases, alphas, facts = {}, {}, []
     for b in blocks:
         for tau in taus:
             path = out / "bases" / f"b{b:02d}_{tau_name(tau)}.npz"
+            info = None
             if path.is_file():
                 with np.load(path, allow_pickle=False) as z:
                     cell = {k: z[k] for k in z.files}
                 info = json.loads(str(cell.pop("facts")))
-            else:
-                fitted = fit_bases(store.cell(b, tau), position)
+                if info.get("version") != BASES_VERSION:  # fitted by an older INLP: refit
+                    info = None
+            if info is None:
+                fitted = fit_bases(store.cell(b, tau), position, device=inlp_dev, dtype=inlp_dtype)
                 info = {k: v for k, v in fitted.items() if k not in ("position", "random", "pc")}
                 cell = {k: fitted[k] for k in ("position", "random", "pc")}
                 tmp = path.with_name(f".{path.name}.tmp.npz")
@@ -102,7 +121,7 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
     with (out / "bases.csv").open("w", newline="") as fh:
         cols = ["block", "tau", "rank", "iterations", "stopped", "k_pc", "alpha_pc", "removed_variance",
                 "top_k_variance", "random_removed_variance", "total_variance", "final_train_r2", "first_heldout_r2",
-                "last_heldout_r2"]
+                "last_heldout_r2", "train_rows", "heldout_rows", "inlp_seconds", "inlp_device", "inlp_dtype"]
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
         for f in facts:
@@ -112,10 +131,14 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
 
     # 2. the loss changes on the first ``clips`` training clips
     cache = LatentCache(cache_dir)
-    train_ids = sorted(i for i, s in man["splits"].items() if s == "train" and i in set(rows["clip"]))
-    chosen = [i for i in train_ids if i in cache.manifest["examples"]][:clips]
+    if clip_split not in ("all", "train"):
+        raise UserError(f"clip split must be all or train, got {clip_split!r}")
+    present = set(rows["clip"])
+    pool = sorted(i for i, s in man["splits"].items() if i in present and (clip_split == "all" or s == "train"))
+    chosen = [i for i in pool if i in cache.manifest["examples"]][:clips]
     if not chosen:
-        raise UserError(f"{acts}: no training-split clips of the store are in the cache {cache_dir}")
+        raise UserError(f"{acts}: no {'training-split ' if clip_split == 'train' else ''}clips of the store are in "
+                        f"the cache {cache_dir}")
     dev = torch.device(resolve_device(device))
     transformer = wan.load_backbone(man["backbone"], man["model"], man.get("model_path"), dev, dtype)
     obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, transformer.config.patch_size)
@@ -167,7 +190,12 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
     return summarize(effects, facts, out, n_resamples, {"acts": str(Path(acts).resolve()), "backbone": man["backbone"],
                                                         "model": man["model"], "taus": taus, "blocks": blocks,
                                                         "clips": chosen, "seconds_this_run": seconds,
-                                                        "full_readout": full_readout,
+                                                        "full_readout": full_readout, "clip_split": clip_split,
+                                                        "inlp": {"ridge_per_row": RIDGE, "min_r2": MIN_R2,
+                                                                 "max_iter": MAX_ITER, "intercept": False,
+                                                                 "centred": False, "r2": "pooled",
+                                                                 "dtype": str(inlp_dtype).replace("torch.", ""),
+                                                                 "device": str(inlp_dev)},
                                                         "clips_this_run": len(todo)})
 
 

@@ -1,12 +1,24 @@
 """The DiT side of probing: the three backbones, the teacher-forced noised input at a schedule fraction,
 block hooks, and Wan's final time-conditioned head applied to any block's output (the direct readout).
 
-Schedule fractions: tau is a position along the 1,000-step training schedule of ``train.schedules``
-(s_i = 1 - i/N): index i = round((1 - tau) N), so s = tau before the shift-5 warp, and
-sigma = 5 tau / (1 + 4 tau) (0.357, 0.682, 0.833, 0.921, 0.978 for tau = 0.1 .. 0.9); the
-transformer sees timestep N sigma on every token but those of slot 0, which stay clean at timestep 0
-(``train.objective.FlowMatchingObjective.prepare``, as in training). The noise of a clip is drawn from
-a CPU generator seeded with a hash of (seed 0, clip id), the same for every tau, block and backbone.
+Schedule fractions (the paper's "positions tau along the 1,000-step training schedule", mapped as
+the release's ``timestep_by_fraction``): tau indexes the training schedule of ``train.schedules`` from
+its noisy end, i = round(tau (N - 1)) with Python's round (N = 1,000, timesteps in decreasing order,
+s_i = 1 - i/N before the shift-5 warp, sigma_i = 5 s_i / (1 + 4 s_i)). So tau = 0.1 is the noisiest of
+the five and tau = 0.9 the least noisy: indices 100, 300, 500, 699, 899 and sigma = 0.978, 0.921,
+0.833, 0.683, 0.360 for tau = 0.1, 0.3, 0.5, 0.7, 0.9. The transformer sees timestep N sigma on every
+token but those of slot 0, which stay clean at timestep 0 (``train.objective.FlowMatchingObjective
+.prepare``, as in training). The noise of a clip is drawn from a CPU generator seeded with a hash of
+(seed 0, clip id), the same for every tau, block and backbone.
+
+Random backbone (the release's ``reset_dit_parameters``): the pretrained DiT with every submodule
+that has ``reset_parameters()`` re-initialised, in module order, from one seed: linear and
+convolution layers (PyTorch's default init) and the affine cross-attention LayerNorm (weight 1,
+bias 0). Parameters outside such modules keep their pretrained values: the modulation tables
+(``scale_shift_table``) and the RMS norms of queries and keys (DiffSynth's RMSNorm, which the release
+resets through, has no ``reset_parameters``; torch's, used by diffusers, has one and is skipped here
+to match). The draws come from a CPU generator seeded ``seed`` (float64, cast to the model's dtype),
+so they are the same on every device, not the release's CUDA bfloat16 draws.
 """
 
 from __future__ import annotations
@@ -24,13 +36,17 @@ from ..train.objective import FlowMatchingObjective
 DEFAULT_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)
 NUM_TRAIN_TIMESTEPS = 1000
 SHIFT = 5.0
-RANDOM_SEED = 1234  # the tiny "random" backbone (the tiny "base" is seed 0)
+RANDOM_SEED = 0  # the random backbone's default seed (the release's --seed default)
+TAU_MAPPING = "index = round(tau * (N - 1)) into the N training timesteps, noisiest first (the release's)"
+RANDOM_INIT = ("pretrained DiT; every submodule with reset_parameters() except RMSNorm re-initialised in module "
+               "order from a CPU generator (float64 draws); scale_shift_table and RMSNorm weights kept")
 
 
 def tau_index(tau: float, n: int = NUM_TRAIN_TIMESTEPS) -> int:
-    if not 0.0 < tau <= 1.0:
-        raise UserError(f"schedule fractions must lie in (0, 1], got {tau}")
-    return min(n - 1, max(0, int(round((1.0 - tau) * n))))
+    """Index into the N training timesteps (noisiest first) of schedule fraction ``tau``: round(tau (N-1))."""
+    if not 0.0 <= tau <= 1.0:
+        raise UserError(f"schedule fractions must lie in [0, 1], got {tau}")
+    return min(n - 1, max(0, int(round(tau * (n - 1)))))
 
 
 def schedule_points(taus, objective: FlowMatchingObjective | None = None) -> list[dict]:
@@ -48,19 +64,48 @@ def clip_noise(clip_id: str, shape, seed: int = 0) -> torch.Tensor:
     return torch.randn(tuple(shape), generator=gen, dtype=torch.float32)
 
 
-def load_backbone(backbone: str, model: str, model_path: str | None, device, dtype=torch.float32):
-    """``base``: the pretrained DiT (the tiny builder's seed-0 weights for ``tiny``); ``random``: the same
-    architecture re-initialised (tiny: seed RANDOM_SEED; wan-2.2: the class's default init), VAE and
-    token layout unchanged; anything else: a checkpoint of ``rigidbench train`` (a full transformer
-    directory, or a LoRA adapter applied to the base model)."""
-    from ..train import models, tiny
+def _is_rms_norm(module) -> bool:
+    return type(module).__name__ == "RMSNorm"
+
+
+def reset_parameters(transformer, seed: int = RANDOM_SEED):
+    """Re-initialise ``transformer`` in place as the release's random backbone (module docstring);
+    returns it. The same seed gives the same weights on every device."""
+    with torch.no_grad(), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))  # the CPU generator; restored afterwards
+        for module in transformer.modules():
+            if not hasattr(module, "reset_parameters") or _is_rms_norm(module):
+                continue
+            real = {k: p for k, p in module._parameters.items() if p is not None}
+            if not real:
+                continue
+            # draw into CPU float64 stand-ins, then copy into the real parameters
+            for k, p in real.items():
+                module._parameters[k] = torch.nn.Parameter(torch.empty(p.shape, dtype=torch.float64))
+            try:
+                module.reset_parameters()
+                fresh = {k: module._parameters[k].detach() for k in real}
+            finally:
+                for k, p in real.items():
+                    module._parameters[k] = p
+            for k, p in real.items():
+                p.copy_(fresh[k].to(device=p.device, dtype=p.dtype))
+    return transformer
+
+
+def load_backbone(backbone: str, model: str, model_path: str | None, device, dtype=torch.float32,
+                  seed: int = RANDOM_SEED):
+    """``base``: the pretrained DiT (the tiny builder's seed-0 weights for ``tiny``); ``random``: the base
+    DiT re-initialised as the release does (``reset_parameters`` with ``seed``), VAE and token layout
+    unchanged; anything else: a checkpoint of ``rigidbench train`` (a full transformer directory, or a
+    LoRA adapter applied to the base model)."""
+    from ..train import models
 
     if backbone == "base":
         return models.load_transformer(model, model_path, "pretrained", dtype, device).eval()
     if backbone == "random":
-        if model == "tiny" and not model_path:
-            return models._to(tiny.tiny_transformer(seed=RANDOM_SEED), device, dtype).eval()
-        return models.load_transformer(model, model_path, "random", dtype, device).eval()
+        base = models.load_transformer(model, model_path, "pretrained", dtype, device)
+        return reset_parameters(base, seed).eval()
     found = detect_checkpoint(backbone)
     base = models.load_transformer(model, model_path, "pretrained", dtype, device)
     holder = SimpleNamespace(transformer=base, register_modules=lambda **kw: setattr(holder, "transformer",

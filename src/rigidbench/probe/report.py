@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import UserError
 
-CHANCE = {"r2": 0.0, "roc_auc": 0.5}
+CHANCE = {"r2": 0.0, "r2_mean": 0.0, "roc_auc": 0.5}
 VARIANT_LABELS = {"position": "Position (INLP)", "pc": "Variance-matched PC", "random": "Random subspace"}
 
 

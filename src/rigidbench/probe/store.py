@@ -22,7 +22,7 @@ from ..errors import UserError
 from ..jsonio import write_json
 
 MANIFEST = "manifest.json"
-STORE_VERSION = 1
+STORE_VERSION = 2  # 2: tau as the release maps it (0.9 = least noisy); the random backbone's seed recorded
 SPLITS = ("train", "val", "test")
 PAPER_SPLIT = (4000, 500, 500)
 
@@ -61,7 +61,9 @@ def read_store_manifest(acts: str | Path) -> dict:
         raise UserError(f"{acts}: not an activation store (no {MANIFEST}); make one with `rigidbench probe extract`")
     manifest = json.loads(path.read_text())
     if manifest.get("version") != STORE_VERSION:
-        raise UserError(f"{path}: activation store version {manifest.get('version')}, expected {STORE_VERSION}")
+        hint = (" (version 1 stores mapped tau the other way round, 0.9 = the noisiest, and did not seed the random "
+                "backbone; extract again)") if manifest.get("version") == 1 else ""
+        raise UserError(f"{path}: activation store version {manifest.get('version')}, expected {STORE_VERSION}{hint}")
     if not manifest.get("chunks"):
         raise UserError(f"{acts}: the activation store holds no rows yet; run `rigidbench probe extract` into it")
     return manifest
