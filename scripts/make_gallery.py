@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigidbench.errors import EXAMPLE_ERRORS
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT_DIR = ROOT / "docs" / "gallery"
 MAX_BYTES = 1_000_000
@@ -377,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
         log.info("example %s (%s, %s)", row.sample_id, row.task, row.scene)
         try:
             render_example_events(row, reg, preset, args.work)
-        except Exception as exc:  # noqa: BLE001 - report and go on with the other examples
+        except EXAMPLE_ERRORS as exc:  # an example that cannot be rendered: report it, go on; a bug stops the run
             log.error("example %s failed: %s", row.sample_id, exc)
             failed.append(row.sample_id)
     if args.render_only:

@@ -4,7 +4,7 @@ Fast and CPU only: it reads container metadata and demuxed packet timestamps, an
 the first frame of each file, so a hundred clips validate in seconds. Blocking errors (a missing
 example, an undecodable file, a clip that does not cover the reference span, duplicate files for
 one example, a first frame that is not the reference's first frame, a reference folder still in the
-published archive's layout) give a non-zero exit code; warnings (extra files, an aspect ratio that resizing
+published archive's layout, a damaged reference bundle) give a non-zero exit code; warnings (extra files, an aspect ratio that resizing
 will distort, header frame rate disagreeing with the timestamps) do not.
 """
 
@@ -20,9 +20,10 @@ import numpy as np
 from rigidbench.benchmark import find_published_layout, is_published_metadata, published_layout_message
 from rigidbench.firstframe import (MISMATCH_KIND, check_first_frame, mismatch_message, read_first_frame,
                                    read_reference_first_frame)
+from rigidbench.groundtruth.bundle import check_bundle, repair_hint
 from rigidbench.perception.gt import STATE_SUFFIX
 from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, VIDEO_EXTENSIONS, VideoError,
-                              VideoInfo, check_decodable, probe_video)
+                              VideoInfo, aligned_length, check_decodable, probe_video, reference_times)
 
 ERROR = "error"
 WARNING = "warning"
@@ -105,8 +106,12 @@ def read_reference_specs(data_dir: Path, report: ValidationReport, *, ref_fps: f
         example_id = meta_path.parent.name
         try:
             meta = json.loads(meta_path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            report.add(ERROR, "bad_metadata", f"{meta_path}: cannot read ({exc}); re-render this sample",
+        except (OSError, ValueError) as exc:  # ValueError: JSONDecodeError, bytes that are not UTF-8
+            report.add(ERROR, "bad_metadata", f"{meta_path}: cannot read ({exc}); {repair_hint(meta_path.parent)}",
+                       example_id, meta_path)
+            continue
+        if not isinstance(meta, dict):
+            report.add(ERROR, "bad_metadata", f"{meta_path}: not a JSON object; {repair_hint(meta_path.parent)}",
                        example_id, meta_path)
             continue
         if is_published_metadata(meta):
@@ -127,6 +132,18 @@ def read_reference_specs(data_dir: Path, report: ValidationReport, *, ref_fps: f
             continue
         source = meta.get("source") if isinstance(meta.get("source"), dict) else None
         report.references[example_id] = ReferenceSpec(example_id, width, height, fps, frames, source)
+        check_reference(meta_path.parent, report)
+
+
+def check_reference(bundle_dir: Path, report: ValidationReport) -> None:
+    """Adds a damaged_reference error when the reference bundle fails ``check_bundle`` (a missing, truncated
+    or inconsistent file), naming the files and what to do. Array shapes and dtypes are read from their
+    headers (``deep=False``), so this costs milliseconds per example."""
+    problems = check_bundle(bundle_dir, deep=False)
+    if problems:
+        more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+        report.add(ERROR, "damaged_reference", f"{bundle_dir.name}: the reference bundle {bundle_dir} is damaged: "
+                   f"{'; '.join(problems[:3])}{more}; {repair_hint(bundle_dir)}", bundle_dir.name, bundle_dir)
 
 
 def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, list[Path]], dict[str, list[Path]]]:
@@ -143,7 +160,7 @@ def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, lis
         if entry.stem not in report.references:
             report.add(WARNING, "extra", f"{entry.name}: '{entry.stem}' is not an example id in the data "
                        "directory; ignored", None, entry)
-        elif entry.is_file() and entry.suffix.lower() in VIDEO_EXTENSIONS:
+        elif entry.suffix.lower() in VIDEO_EXTENSIONS:  # a FIFO or device so named is refused unread (probe)
             videos.setdefault(entry.stem, []).append(entry)
         else:
             others.setdefault(entry.stem, []).append(entry)  # e.g. <id>.json written beside the clip
@@ -153,8 +170,8 @@ def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, lis
 def check_file(info: VideoInfo, ref: ReferenceSpec, report: ValidationReport) -> None:
     """Adds issues for one probed prediction: coverage of the reference span, frame rate, aspect ratio."""
     name = info.path.name
-    half_frame_s = 0.5 / ref.fps
-    if info.n_frames < 2 or info.duration_s < ref.span_s - half_frame_s:
+    # The rule `evaluate` compares with (video.aligned_length): every reference time must be covered.
+    if aligned_length(info.times_s, reference_times(ref.frames, ref.fps)) < ref.frames:
         report.add(ERROR, "too_short", f"{name}: last frame at {info.duration_s:.3f} s ({info.n_frames} frames); "
                    f"it must cover 0 to {ref.span_s:.3f} s ({ref.frames} frames at {ref.fps:g} fps)",
                    ref.example_id, info.path)

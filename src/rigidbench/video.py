@@ -33,8 +33,20 @@ REFERENCE_FPS = 24.0
 REFERENCE_FRAMES = 49
 REFERENCE_SIZE = (1280, 704)
 
-#: Seconds by which a reference timestamp may pass the last generated frame and still be kept.
+#: Seconds within which two timestamps are the same instant (a reference time that coincides with a
+#: generated frame takes that frame unchanged).
 TIME_TOLERANCE_S = 1e-6
+
+#: Seconds by which a reference time may lie outside a clip's first-to-last-frame span and still count as
+#: covered (it is then sampled at that end frame): half a frame of the 24 fps reference, i.e. the nearest
+#: generated frame is at most half a reference frame away. The one coverage rule: ``aligned_length``
+#: (what ``evaluate`` compares and the span it records), the resampling here, and ``validate``'s
+#: too-short check all use it, so a clip whose last timestamp is a fraction of a millisecond early is
+#: neither refused by one nor cut short by the other.
+COVERAGE_TOLERANCE_S = 0.5 / REFERENCE_FPS
+
+#: Largest prediction file read (bytes); a bigger one is refused before it is hashed or decoded.
+MAX_VIDEO_BYTES = 2 * 1024 ** 3
 
 #: Extensions read as videos (anything FFmpeg demuxes works; these are the ones we look for).
 VIDEO_EXTENSIONS = (".mp4", ".webm", ".mov", ".mkv", ".avi", ".gif")
@@ -132,8 +144,9 @@ def reference_times(n_frames: int = REFERENCE_FRAMES, fps: float = REFERENCE_FPS
     return np.arange(n_frames, dtype=np.float64) / float(fps)
 
 
-def aligned_length(gen_times_s: np.ndarray, ref_times_s: np.ndarray, tol_s: float = TIME_TOLERANCE_S) -> int:
-    """gen_times_s (T,), ref_times_s (K,) seconds. Returns how many leading reference times the clip covers."""
+def aligned_length(gen_times_s: np.ndarray, ref_times_s: np.ndarray, tol_s: float = COVERAGE_TOLERANCE_S) -> int:
+    """gen_times_s (T,), ref_times_s (K,) seconds. Returns how many leading reference times the clip covers:
+    those within ``tol_s`` (COVERAGE_TOLERANCE_S, the one coverage rule) of its first-to-last-frame span."""
     gen_times_s = np.asarray(gen_times_s, dtype=np.float64)
     ref_times_s = np.asarray(ref_times_s, dtype=np.float64)
     if len(gen_times_s) == 0 or len(ref_times_s) == 0:
@@ -151,8 +164,9 @@ def frames_until(times_s: np.ndarray, until_s: float, tol_s: float = TIME_TOLERA
 
 
 def _bracket(src_times_s: np.ndarray, dst_times_s: np.ndarray,
-             tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """src (T,) increasing, dst (K,) seconds. Returns i0, i1 (K,) int and w (K,) float64 in [0, 1]."""
+             tol_s: float = COVERAGE_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """src (T,) increasing, dst (K,) seconds. Returns i0, i1 (K,) int and w (K,) float64 in [0, 1]; a dst
+    time within ``tol_s`` outside the source span (``aligned_length``'s rule) takes the end sample."""
     src = np.asarray(src_times_s, dtype=np.float64)
     dst = np.asarray(dst_times_s, dtype=np.float64)
     if src.ndim != 1 or len(src) == 0:
@@ -299,7 +313,8 @@ def align_frames(frames: Iterable[tuple[float, np.ndarray]], ref_times_s: np.nda
     blended linearly in physical time in float32 and rounded half-to-even back to uint8. A
     reference time that coincides with a generated frame (within TIME_TOLERANCE_S) returns that
     resized frame unchanged. Reference times after the last generated frame are dropped (K' <= K), so a
-    longer clip is cut at the reference length and a shorter one stops at its last frame.
+    longer clip is cut at the reference length and a shorter one stops at its last frame; those within
+    COVERAGE_TOLERANCE_S of it are covered (``aligned_length``) and take the last frame.
     """
     ref = np.asarray(ref_times_s, dtype=np.float64)
     out: np.ndarray | None = None
@@ -315,7 +330,7 @@ def align_frames(frames: Iterable[tuple[float, np.ndarray]], ref_times_s: np.nda
             out = np.empty((len(ref), size[1], size[0], 3), dtype=np.uint8)
         cur = resize_frames(frame, size)
         if prev is None:
-            if ref[0] < t - TIME_TOLERANCE_S:
+            if ref[0] < t - COVERAGE_TOLERANCE_S:
                 break  # the clip starts after the first reference time: nothing can be scored
             while k < len(ref) and ref[k] <= t + TIME_TOLERANCE_S:
                 out[k] = cur
@@ -326,6 +341,10 @@ def align_frames(frames: Iterable[tuple[float, np.ndarray]], ref_times_s: np.nda
                 out[k] = _blend_uint8(prev, cur, w)
                 k += 1
         prev, t_prev = cur, t
+    else:  # the clip ended: reference times within the coverage tolerance of its last frame take that frame
+        while prev is not None and k < len(ref) and ref[k] <= t_prev + COVERAGE_TOLERANCE_S:
+            out[k] = prev
+            k += 1
     if out is None:
         width, height = size if size is not None else (0, 0)
         return np.empty((0, height, width, 3), dtype=np.uint8)
@@ -371,14 +390,39 @@ def _nominal_fps(stream) -> float | None:
     return None
 
 
+def check_video_file(path: str | Path, max_bytes: int = MAX_VIDEO_BYTES, what: str = "video file") -> int:
+    """path: a video file to read (a symbolic link to one is fine). Returns its size in bytes; raises
+    VideoError, without reading it, for anything but a regular file (a FIFO, a device such as /dev/zero, a
+    directory, a socket), an empty file, or one over ``max_bytes`` (MAX_VIDEO_BYTES), any of which could
+    otherwise block or exhaust a reader."""
+    import stat
+
+    path = Path(path)
+    try:
+        st = path.stat()  # follows symbolic links: what would be read
+    except FileNotFoundError:
+        raise VideoError(path, "file not found (or a broken symbolic link)") from None
+    except OSError as exc:
+        raise VideoError(path, f"cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a character device" if
+                stat.S_ISCHR(st.st_mode) else "a block device" if stat.S_ISBLK(st.st_mode) else "a directory"
+                if stat.S_ISDIR(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+        target = f" (a link to {os.path.realpath(path)})" if path.is_symlink() else ""
+        raise VideoError(path, f"is {kind}{target}, not a regular {what}; only regular files are read")
+    if st.st_size == 0:
+        raise VideoError(path, "file is empty (0 bytes)")
+    if st.st_size > max_bytes:
+        raise VideoError(path, f"is {st.st_size / 1e9:.2f} GB, over the {max_bytes / 1e9:.2f} GB limit for one "
+                               f"{what} (MAX_VIDEO_BYTES); re-encode it (a 2-second clip needs far less)")
+    return int(st.st_size)
+
+
 def _open(path: Path):
-    """Opens a container with PyAV; raises VideoError for a missing or unreadable file."""
+    """Opens a container with PyAV; raises VideoError for a missing, unreadable or non-regular file."""
     import av
 
-    if not path.exists():
-        raise VideoError(path, "file not found")
-    if path.is_file() and path.stat().st_size == 0:
-        raise VideoError(path, "file is empty (0 bytes)")
+    check_video_file(path)
     try:
         container = av.open(str(path))
     except av.error.FFmpegError as exc:

@@ -28,9 +28,11 @@ def test_reduced_demo_renders_scores_and_reports(tmp_path, capsys):
     assert sorted(m["task"] for m in metas) == list(TASKS)
     # The printed table: the reference scores perfectly; the frozen clip loses IoU, gamma loses SSIM only.
     ref, static, gamma = (_row(text, m) for m in ("reference", "static", "gamma"))
-    assert float(ref[0]) == 1.0 and float(ref[6]) == 1.0  # IoU, SSIM
+    # IoU exact; SSIM just below 1: the default protocol (rigidbench-v1, the published evaluator's) passes
+    # generated frames through JPEG q95 4:4:4, the reference's own included
+    assert float(ref[0]) == 1.0 and 0.99 < float(ref[6]) < 1.0
     assert float(static[0]) < 0.9
-    assert float(gamma[0]) == 1.0 and float(gamma[6]) < 1.0
+    assert float(gamma[0]) == 1.0 and float(gamma[6]) < float(ref[6]) - 0.05
     for mode in ("reference", "static", "gamma"):
         results = json.loads((out / "runs" / mode / "results.json").read_text())
         assert results["n_examples"] == 5 and not results["failed"]

@@ -43,9 +43,11 @@ def test_reference_against_itself_is_perfect(data_dir, tmp_path):
     # ATE-3D's floor: the reconstruction of a perfect clip is the median of the visible surface points, the
     # target the body origin (paper); the difference is a small positive offset, computed independently here
     # (up to bilinear depth sampling between pixels of the Z pass near object edges).
+    # Since our renders draw query points by the published rule, small actors at this preset take points from
+    # their whole mask, edges included, where bilinear depth sampling mixes in the background: hence 5e-3.
     floors = [ate3d_floor(Sample(data_dir / i)) for i in ("00015", "00020")]
     assert min(floors) > 0.01
-    assert overall["ate3d"]["mean"] == pytest.approx(np.mean(floors), abs=2e-3)
+    assert overall["ate3d"]["mean"] == pytest.approx(np.mean(floors), abs=5e-3)
     assert overall["ate3d"]["finite"] == 2
     # Measurements without their networks are reported as skipped, and the run is not official.
     assert summary.results["official"] is False and "lpips" in summary.results["skipped_metrics"]
@@ -112,7 +114,7 @@ def test_failure_modes_move_metrics_in_the_expected_direction(data_dir, tmp_path
     assert wobble["bgdrift"]["mean"] > 3 * max(shake["bgdrift"]["mean"], 1e-4)
     gamma = _run(data_dir, tmp_path, "gamma").results["overall"]
     floor = np.mean([ate3d_floor(Sample(data_dir / i)) for i in ("00015", "00020")])
-    assert gamma["ssim"]["mean"] < 0.99 and gamma["ate3d"]["mean"] == pytest.approx(floor, abs=2e-3)
+    assert gamma["ssim"]["mean"] < 0.99 and gamma["ate3d"]["mean"] == pytest.approx(floor, abs=5e-3)
 
 
 def test_predict_resumes_and_rewrites_when_the_severity_changes(data_dir, tmp_path):

@@ -16,6 +16,14 @@ pytest.importorskip("av")
 REF_META = {"resolution": [64, 36], "fps": 24, "frames": 49}
 
 
+@pytest.fixture(autouse=True)
+def metadata_only_references(monkeypatch):
+    """The reference stand-ins here hold only metadata.json (and a first frame): the checks of the
+    predictions are under test, so the bundle check of each reference (validate.check_reference) is off.
+    Damaged reference bundles are tested in tests/faults/test_bundle_faults.py."""
+    monkeypatch.setattr("rigidbench.validate.check_reference", lambda bundle_dir, report: None)
+
+
 def clip(n_frames: int, size=(64, 36)) -> np.ndarray:
     """(T,H,W,3) uint8 frames with a brightness ramp, so the encoder sees real content."""
     width, height = size

@@ -90,7 +90,9 @@ def test_reference_times_are_k_over_fps():
     (fps_times(17, 16.0), 25),   # also 1.0 s
     (fps_times(48, 24.0), 48),   # one frame short
     (np.array([0.0, 0.5, 1.0 - 1e-7]), 25),  # within the tolerance of t = 1.0
-    (np.array([0.0, 0.5, 1.0 - 1e-4]), 24),  # beyond it: t = 1.0 is discarded
+    (np.array([0.0, 0.5, 1.0 - 3e-4]), 25),  # 0.3 ms early (ms-rounded VFR times): still covers t = 1.0
+    (np.array([0.0, 0.5, 1.0 - 0.02]), 25),  # within half a reference frame (1/48 s): the nearest frame
+    (np.array([0.0, 0.5, 1.0 - 0.022]), 24),  # beyond it: t = 1.0 is discarded
     (np.array([0.0]), 1),
     (np.array([]), 0),
 ])
@@ -119,8 +121,8 @@ def test_interpolate_linear_on_track_axis_and_dtypes():
 
 
 def test_interpolate_linear_refuses_to_extrapolate():
-    with pytest.raises(ValueError, match="aligned_length"):
-        interpolate_linear(np.zeros(3), fps_times(3, 24.0), np.array([0.0, 0.1]))
+    with pytest.raises(ValueError, match="aligned_length"):  # more than half a frame past the last sample
+        interpolate_linear(np.zeros(3), fps_times(3, 24.0), np.array([0.0, 0.11]))
     with pytest.raises(ValueError):
         interpolate_linear(np.zeros(3), np.array([0.0, 0.2, 0.1]), np.array([0.05]))
 

@@ -30,10 +30,23 @@ def aggregate(records: list[dict], metrics: Sequence[str]) -> dict:
     return out
 
 
-def why_not_official(all_ids: Sequence[str], complete_ids: set[str], failed: dict, missing_metrics: Sequence[str]
-                     ) -> list[str]:
+def coverage_summary(records: list[dict]) -> dict:
+    """results.json's "coverage": per example the seconds and fraction of the reference span its clip
+    covers (and the frames compared), the smallest and mean fraction, and the ids scored although short
+    of the span (``evaluate --allow-short``). Records without coverage (older runs) are left out."""
+    per = {r["id"]: {k: r["coverage"][k] for k in ("seconds", "fraction", "frames", "reference_frames", "short")
+                     if k in r["coverage"]}
+           for r in records if isinstance(r.get("coverage"), dict)}
+    fractions = [c["fraction"] for c in per.values() if c.get("fraction") is not None]
+    return {"min_fraction": min(fractions) if fractions else None,
+            "mean_fraction": float(np.mean(fractions)) if fractions else None,
+            "short": sorted(i for i, c in per.items() if c.get("short")), "per_example": per}
+
+
+def why_not_official(all_ids: Sequence[str], complete_ids: set[str], failed: dict, missing_metrics: Sequence[str],
+                     short: Sequence[str] = ()) -> list[str]:
     """The reasons a run is not an official result (empty: it is one): the full evaluation split, every
-    example scored, none failed, no measurement skipped."""
+    example scored over the whole reference span, none failed, no measurement skipped."""
     reasons = []
     if len(all_ids) != EVAL_SIZE:
         reasons.append(f"the reference directory holds {len(all_ids)} examples, not the {EVAL_SIZE} of the eval split")
@@ -43,4 +56,7 @@ def why_not_official(all_ids: Sequence[str], complete_ids: set[str], failed: dic
         reasons.append(f"{len(failed)} examples failed")
     if missing_metrics:
         reasons.append(f"measurements skipped: {', '.join(missing_metrics)}")
+    if short:
+        reasons.append(f"{len(short)} clips shorter than the reference span were scored (--allow-short): "
+                       f"{', '.join(short[:5])}{' ...' if len(short) > 5 else ''}")
     return reasons

@@ -8,9 +8,15 @@ from pathlib import Path
 
 from ..jsonio import write_json as _write
 
-SCORE_VERSION = "2"  # 2: ATE-3D against the simulated actor positions (the paper's target)
+# 2: ATE-3D against the simulated actor positions (the paper's target); 3: records hold the clip's coverage
+# of the reference span, and the reference key leaves out metadata that does not move scores
+SCORE_VERSION = "3"
 
 REFERENCE_FILES = ("metadata.json", "masks.npz", "depth.npz", "tracks.npz", "trajectories.npz", "video.mp4")
+
+#: metadata.json fields that record how a bundle was made, not what it holds: a re-render that changes
+#: only these (its timings, package versions) keeps every cached score.
+VOLATILE_METADATA = ("render_seconds", "software")
 
 
 def file_hash(path: Path, chunk: int = 1 << 20) -> str:
@@ -21,13 +27,30 @@ def file_hash(path: Path, chunk: int = 1 << 20) -> str:
     return digest.hexdigest()
 
 
+def metadata_hash(path: Path) -> str:
+    """Hash of a metadata.json without its VOLATILE_METADATA fields (canonical JSON); of its bytes when it
+    is not a readable JSON object (the example then fails where it is read, naming the file)."""
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return file_hash(path)
+    if not isinstance(meta, dict):
+        return file_hash(path)
+    kept = {k: v for k, v in meta.items() if k not in VOLATILE_METADATA}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True, allow_nan=True).encode()).hexdigest()
+
+
 def reference_hash(sample_dir: Path) -> str:
-    """One hash over the reference files the scores depend on."""
+    """One hash over what the scores depend on in a reference bundle: its arrays and video, and its
+    metadata without the fields that only record how it was made (VOLATILE_METADATA)."""
     digest = hashlib.sha256()
     for name in REFERENCE_FILES:
         path = sample_dir / name
         digest.update(name.encode())
-        digest.update(file_hash(path).encode() if path.exists() else b"missing")
+        if not path.exists():
+            digest.update(b"missing")
+        else:
+            digest.update((metadata_hash(path) if name == "metadata.json" else file_hash(path)).encode())
     return digest.hexdigest()
 
 

@@ -26,8 +26,10 @@ import json
 import math
 import os
 import shutil
+import zipfile
+import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 
@@ -169,13 +171,76 @@ def commit(tmp_dir: Path, final_dir: Path) -> Path:
 # -- reading -------------------------------------------------------------------------------------
 
 
+#: What reading a damaged bundle file raises: truncated or corrupt zip (npz), JSON, PNG or npy data, a
+#: missing array or field, an unreadable file.
+READ_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError, EOFError, KeyError, IndexError, TypeError,
+                                                zipfile.BadZipFile, zlib.error)
+
+_T = TypeVar("_T")
+
+
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
 
 
+def repair_hint(bundle_dir: str | Path) -> str:
+    """What to do about a damaged bundle: import it again (a bundle imported from a published set, or one
+    without a readable metadata.json and no scene spec) or re-render it (our renders)."""
+    bundle_dir = Path(bundle_dir)
+    sample_id, split, root = bundle_dir.name, bundle_dir.parent.name, bundle_dir.parent.parent
+    imported = _imported(bundle_dir)
+    if not imported and not (bundle_dir / SPEC_FILE).is_file():
+        try:
+            json.loads((bundle_dir / METADATA_FILE).read_text())
+        except READ_ERRORS:  # metadata unreadable and no scene spec: most likely an imported bundle
+            imported = True
+    if imported:
+        return (f"import it again with `rigidbench import <the published archive or folder> --data {root}` "
+                f"(or `rigidbench download --data {root}`), which replaces the damaged bundle")
+    split_option = f" --split {split}" if split in SPLITS else ""
+    return (f"re-render example {sample_id} with `rigidbench render --ids {sample_id}{split_option} --data {root}` "
+            "(the damaged bundle is replaced)")
+
+
+def damaged_error(bundle_dir: str | Path, name: str, exc: BaseException) -> BundleError:
+    """The per-example error for a bundle file ``name`` that cannot be read: names the file, the reason and
+    what to do."""
+    bundle_dir = Path(bundle_dir)
+    reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    return BundleError(f"example {bundle_dir.name}: {bundle_dir / name} is damaged or unreadable ({reason}); "
+                       f"{repair_hint(bundle_dir)}")
+
+
+def read_bundle_file(bundle_dir: str | Path, name: str, loader: Callable[[Path], _T]) -> _T:
+    """``loader(bundle_dir / name)``, with any read error (truncated npz, JSON or PNG, a missing array)
+    turned into a BundleError naming the file and what to do (``damaged_error``)."""
+    path = Path(bundle_dir) / name
+    try:
+        return loader(path)
+    except BundleError:
+        raise
+    except READ_ERRORS as exc:
+        raise damaged_error(bundle_dir, name, exc) from exc
+
+
+def _read_json_dict(path: Path) -> dict[str, Any]:
+    doc = json.loads(path.read_text())
+    if not isinstance(doc, dict):
+        raise ValueError(f"expected a JSON object, found {type(doc).__name__}")
+    return doc
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return np.asarray(image.convert("RGB"))
+
+
 class Sample:
-    """Lazy reader over one bundle directory; every property loads its file on first use."""
+    """Lazy reader over one bundle directory; every property loads its file on first use. A file that
+    cannot be read (missing, truncated, corrupt) raises a BundleError naming it and what to do."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -188,35 +253,48 @@ class Sample:
     def __repr__(self) -> str:
         return f"Sample({str(self.path)!r})"
 
+    def _read(self, name: str, loader: Callable[[Path], _T]) -> _T:
+        return read_bundle_file(self.path, name, loader)
+
     @functools.cached_property
     def metadata(self) -> dict[str, Any]:
-        return json.loads((self.path / METADATA_FILE).read_text())
+        return self._read(METADATA_FILE, _read_json_dict)
+
+    def _field(self, key: str, convert: Callable[[Any], _T]) -> _T:
+        """metadata[key] converted; a missing or malformed field is a BundleError naming metadata.json."""
+        def get(_: Path) -> _T:
+            return convert(self.metadata[key])
+
+        return self._read(METADATA_FILE, get)
 
     @property
     def sample_id(self) -> str:
-        return str(self.metadata["sample_id"])
+        return self._field("sample_id", str)
 
     @property
     def task(self) -> str:
-        return str(self.metadata["task"])
+        return self._field("task", str)
 
     @property
     def partition(self) -> str:
-        return str(self.metadata["partition"])
+        return self._field("partition", str)
 
     @property
     def n_frames(self) -> int:
-        return int(self.metadata["frames"])
+        return self._field("frames", int)
 
     @property
     def fps(self) -> float:
-        return float(self.metadata["fps"])
+        return self._field("fps", float)
 
     @property
     def resolution(self) -> tuple[int, int]:
         """(W, H) pixels."""
-        w, h = self.metadata["resolution"]
-        return int(w), int(h)
+        def wh(value: Any) -> tuple[int, int]:
+            w, h = value
+            return int(w), int(h)
+
+        return self._field("resolution", wh)
 
     @property
     def frame_paths(self) -> list[Path]:
@@ -233,19 +311,22 @@ class Sample:
     @functools.cached_property
     def frames(self) -> np.ndarray:
         """(T,H,W,3) uint8 RGB from the PNG frames."""
-        from PIL import Image
-
-        return np.stack([np.asarray(Image.open(p).convert("RGB")) for p in self.frame_paths])
+        return np.stack([self.frame(k) for k in range(self.n_frames)])
 
     def frame(self, k: int) -> np.ndarray:
         """(H,W,3) uint8 RGB frame ``k``."""
-        from PIL import Image
-
-        return np.asarray(Image.open(self.frame_paths[k]).convert("RGB"))
+        return self._read(f"{FRAMES_DIR}/{frame_name(k)}", _read_rgb)
 
     @functools.cached_property
     def _masks(self) -> dict[str, np.ndarray]:
-        return _load_npz(self.path / MASKS_FILE)
+        def load(path: Path) -> dict[str, np.ndarray]:
+            arrays = _load_npz(path)
+            for key in ("masks", "names", "roles"):
+                if key not in arrays:
+                    raise KeyError(f"no array '{key}'")
+            return arrays
+
+        return self._read(MASKS_FILE, load)
 
     @property
     def masks(self) -> np.ndarray:
@@ -268,40 +349,49 @@ class Sample:
     @functools.cached_property
     def depth(self) -> np.ndarray:
         """(T,H,W) float32 Z depth in metres (+inf where nothing is hit)."""
-        return _load_npz(self.path / DEPTH_FILE)["depth"]
+        return self._read(DEPTH_FILE, lambda path: _load_npz(path)["depth"])
 
     @functools.cached_property
     def trajectory(self) -> Trajectory:
-        return Trajectory.load(self.path / TRAJECTORIES_FILE)
+        return self._read(TRAJECTORIES_FILE, Trajectory.load)
 
     @functools.cached_property
     def contacts(self) -> list[Contact]:
-        return load_contacts(self.path / CONTACTS_FILE)
+        return self._read(CONTACTS_FILE, load_contacts)
 
     @functools.cached_property
     def tracks(self) -> Tracks:
         """Ground-truth point tracks; also indexable by npz key (``tracks["visibility"]``)."""
-        return Tracks.load(self.path / TRACKS_FILE)
+        return self._read(TRACKS_FILE, Tracks.load)
 
     @property
     def track_active_index(self) -> np.ndarray:
         """(P,) int64 index of each track's actor among the active actors (into ``active_indices``)."""
         return np.searchsorted(self.active_indices, self.tracks.actor_index).astype(np.int64)
 
+    def _camera_matrix(self, key: str, shape: tuple[int, int]) -> np.ndarray:
+        def matrix(camera: Any) -> np.ndarray:
+            m = np.array(camera[key], dtype=np.float64)
+            if m.shape != shape:
+                raise ValueError(f"camera.{key} has shape {m.shape}, expected {shape}")
+            return m
+
+        return self._field("camera", matrix)
+
     @property
     def K(self) -> np.ndarray:
         """(3,3) camera intrinsics in pixels (integer coordinates at pixel centres)."""
-        return np.array(self.metadata["camera"]["intrinsics_K"], dtype=np.float64)
+        return self._camera_matrix("intrinsics_K", (3, 3))
 
     @property
     def camera_to_world(self) -> np.ndarray:
         """(4,4) Blender camera-to-world matrix (camera looks along its -z, +y up)."""
-        return np.array(self.metadata["camera"]["camera_to_world_blender"], dtype=np.float64)
+        return self._camera_matrix("camera_to_world_blender", (4, 4))
 
     @property
     def world_to_camera_cv(self) -> np.ndarray:
         """(4,4) world-to-camera matrix in the CV convention (+z forward, +y down)."""
-        return np.array(self.metadata["camera"]["world_to_camera_cv"], dtype=np.float64)
+        return self._camera_matrix("world_to_camera_cv", (4, 4))
 
     @property
     def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -311,7 +401,7 @@ class Sample:
 
     @functools.cached_property
     def prompt(self) -> str:
-        return (self.path / PROMPT_FILE).read_text().strip()
+        return self._read(PROMPT_FILE, lambda path: path.read_text().strip())
 
     @property
     def imported(self) -> bool:
@@ -322,7 +412,7 @@ class Sample:
     def spec(self) -> SceneSpec:
         if self.imported and not (self.path / SPEC_FILE).is_file():
             raise BundleError(no_spec_message(self.path.name))
-        return SceneSpec.from_json((self.path / SPEC_FILE).read_text())
+        return self._read(SPEC_FILE, lambda path: SceneSpec.from_json(path.read_text()))
 
 
 def dataset_identity(metadata: dict[str, Any]) -> dict[str, Any]:
@@ -418,41 +508,88 @@ def _check(problems: list[str], ok: bool, message: str) -> bool:
     return ok
 
 
-def _check_npz(path: Path, problems: list[str]) -> dict[str, np.ndarray] | None:
+class _NpzView:
+    """An npz file read lazily: its zip directory on opening (a truncated file fails here), each member's
+    shape and dtype from its .npy header (no data decompressed), an array's data only when asked for."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.zip = zipfile.ZipFile(path)
+        self.keys = {n[:-4] for n in self.zip.namelist() if n.endswith(".npy")}
+        self._headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+
+    def header(self, key: str) -> tuple[tuple[int, ...], np.dtype]:
+        if key not in self._headers:
+            with self.zip.open(f"{key}.npy") as fh:
+                version = np.lib.format.read_magic(fh)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                    np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(fh)
+            self._headers[key] = (tuple(int(n) for n in shape), np.dtype(dtype))
+        return self._headers[key]
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        with self.zip.open(f"{key}.npy") as fh:
+            return np.lib.format.read_array(fh, allow_pickle=False)
+
+    def close(self) -> None:
+        self.zip.close()
+
+
+def _check_npz(path: Path, problems: list[str]) -> _NpzView | None:
     try:
-        return _load_npz(path)
-    except (OSError, ValueError, EOFError) as exc:
-        problems.append(f"{path.name}: cannot be read ({exc})")
+        return _NpzView(path)
+    except READ_ERRORS as exc:
+        problems.append(f"{path.name}: cannot be read ({type(exc).__name__}: {exc})")
         return None
 
 
-def _check_array(problems: list[str], file: str, data: dict[str, np.ndarray], key: str, shape: tuple,
-                 dtype_kind: str | tuple[str, ...]) -> np.ndarray | None:
-    """shape entries of None match anything; dtype_kind is numpy's kind letter(s) ('b', 'f', 'i', 'U')."""
-    if key not in data:
+def _check_load(problems: list[str], file: str, data: _NpzView, key: str) -> np.ndarray | None:
+    """The array ``key`` of an npz, or None with a problem when its data cannot be read (corrupt member)."""
+    try:
+        return data[key]
+    except READ_ERRORS as exc:
+        problems.append(f"{file}: '{key}' cannot be read ({type(exc).__name__}: {exc})")
+        return None
+
+
+def _check_array(problems: list[str], file: str, data: _NpzView, key: str, shape: tuple,
+                 dtype_kind: str | tuple[str, ...]) -> tuple[int, ...] | None:
+    """Checks the header of array ``key``: shape entries of None match anything; dtype_kind is numpy's kind
+    letter(s) ('b', 'f', 'i', 'U'). Returns its shape (None when it is missing or unreadable)."""
+    if key not in data.keys:
         problems.append(f"{file}: missing array '{key}'")
         return None
-    a = data[key]
+    try:
+        got_shape, dtype = data.header(key)
+    except READ_ERRORS as exc:
+        problems.append(f"{file}: '{key}' cannot be read ({type(exc).__name__}: {exc})")
+        return None
     kinds = (dtype_kind,) if isinstance(dtype_kind, str) else dtype_kind
-    _check(problems, a.dtype.kind in kinds, f"{file}: '{key}' has dtype {a.dtype}, expected kind {'/'.join(kinds)}")
-    if _check(problems, a.ndim == len(shape), f"{file}: '{key}' has shape {a.shape}, expected {len(shape)} axes"):
-        for axis, (got, want) in enumerate(zip(a.shape, shape)):
+    _check(problems, dtype.kind in kinds, f"{file}: '{key}' has dtype {dtype}, expected kind {'/'.join(kinds)}")
+    if _check(problems, len(got_shape) == len(shape), f"{file}: '{key}' has shape {got_shape}, expected "
+                                                      f"{len(shape)} axes"):
+        for axis, (got, want) in enumerate(zip(got_shape, shape)):
             _check(problems, want is None or got == want,
-                   f"{file}: '{key}' has shape {a.shape}, axis {axis} should be {want}")
-    return a
+                   f"{file}: '{key}' has shape {got_shape}, axis {axis} should be {want}")
+    return got_shape
 
 
 def _imported(path: Path) -> bool:
     try:
         meta = json.loads((path / METADATA_FILE).read_text())
-    except (OSError, ValueError):
+    except READ_ERRORS:
         return False
     return isinstance(meta, dict) and bool(meta.get("source"))
 
 
-def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
-    """Problems with the bundle at ``path`` (empty when valid): every file present, documented
-    shapes and dtypes, consistent T (frames), N (actors), H and W everywhere."""
+def check_bundle(path: str | Path, check_video: bool = True, deep: bool = True) -> list[str]:
+    """Problems with the bundle at ``path`` (empty when valid): every file present and readable, documented
+    shapes and dtypes, consistent T (frames), N (actors), H and W everywhere.
+
+    ``deep`` (default) also reads the large arrays (masks, depth) to check their values; without it their
+    shapes and dtypes come from the .npy headers alone, so a damaged (e.g. truncated) file is still found
+    in milliseconds, but not a flipped bit inside the compressed data (``render`` skips with this check)."""
     path = Path(path)
     if not path.is_dir():
         return [f"{path}: bundle directory does not exist"]
@@ -464,15 +601,15 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
     if not (path / METADATA_FILE).is_file():
         return problems
     try:
-        meta = json.loads((path / METADATA_FILE).read_text())
+        meta = _read_json_dict(path / METADATA_FILE)
         T = int(meta["frames"])
         W, H = (int(v) for v in meta["resolution"])
         names = list(meta["actor_names"])
         roles = list(meta["roles"])
         K = np.array(meta["camera"]["intrinsics_K"], float)
         c2w = np.array(meta["camera"]["camera_to_world_blender"], float)
-    except (ValueError, KeyError, TypeError) as exc:
-        return problems + [f"{METADATA_FILE}: unreadable or missing a required field ({exc})"]
+    except READ_ERRORS as exc:
+        return problems + [f"{METADATA_FILE}: unreadable or missing a required field ({type(exc).__name__}: {exc})"]
     N = len(names)
     _check(problems, K.shape == (3, 3) and c2w.shape == (4, 4), f"{METADATA_FILE}: camera matrices have wrong shapes")
     _check(problems, len(roles) == N and set(roles) <= {"active", "passive"},
@@ -504,19 +641,26 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
 
     masks = _check_npz(path / MASKS_FILE, problems) if (path / MASKS_FILE).is_file() else None
     if masks is not None:
-        _check_array(problems, MASKS_FILE, masks, "masks", (T, N, H, W), "b")
+        if _check_array(problems, MASKS_FILE, masks, "masks", (T, N, H, W), "b") is not None and deep:
+            _check_load(problems, MASKS_FILE, masks, "masks")
         for key, want in (("names", names), ("roles", roles)):
-            if key in masks:
-                _check(problems, [str(s) for s in masks[key]] == want, f"{MASKS_FILE}: {key} differ from metadata")
+            if key in masks.keys:
+                got = _check_load(problems, MASKS_FILE, masks, key)
+                if got is not None:
+                    _check(problems, [str(s) for s in got] == want, f"{MASKS_FILE}: {key} differ from metadata")
             else:
                 problems.append(f"{MASKS_FILE}: missing array '{key}'")
+        masks.close()
     depth = _check_npz(path / DEPTH_FILE, problems) if (path / DEPTH_FILE).is_file() else None
     if depth is not None:
-        d = _check_array(problems, DEPTH_FILE, depth, "depth", (T, H, W), "f")
-        if d is not None:
-            _check(problems, d.dtype == np.float32, f"{DEPTH_FILE}: depth is {d.dtype}, expected float32")
-            _check(problems, not np.isnan(d).any() and bool((d > 0).all()),
-                   f"{DEPTH_FILE}: depth must be positive (inf for no surface) and never NaN")
+        if _check_array(problems, DEPTH_FILE, depth, "depth", (T, H, W), "f") is not None:
+            dtype = depth.header("depth")[1]
+            _check(problems, dtype == np.float32, f"{DEPTH_FILE}: depth is {dtype}, expected float32")
+            d = _check_load(problems, DEPTH_FILE, depth, "depth") if deep else None
+            if d is not None:
+                _check(problems, not np.isnan(d).any() and bool((d > 0).all()),
+                       f"{DEPTH_FILE}: depth must be positive (inf for no surface) and never NaN")
+        depth.close()
     if (path / TRAJECTORIES_FILE).is_file():
         try:
             traj = Trajectory.load(path / TRAJECTORIES_FILE)
@@ -527,8 +671,8 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
                    f"expected ({N},{T},3) / ({N},{T},4)")
             _check(problems, bool(np.isfinite(traj.positions_m).all() and np.isfinite(traj.quat_wxyz).all()),
                    f"{TRAJECTORIES_FILE}: non-finite poses")
-        except (OSError, KeyError, ValueError) as exc:
-            problems.append(f"{TRAJECTORIES_FILE}: cannot be read ({exc})")
+        except READ_ERRORS as exc:
+            problems.append(f"{TRAJECTORIES_FILE}: cannot be read ({type(exc).__name__}: {exc})")
     if (path / CONTACTS_FILE).is_file():
         try:
             contacts = load_contacts(path / CONTACTS_FILE)
@@ -536,25 +680,35 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
                    or len(c.points_m) != len(c.normals)]
             _check(problems, not bad, f"{CONTACTS_FILE}: {len(bad)} contacts with a frame outside [0, {T}), an "
                                       "unknown first body, or mismatched points and normals")
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            problems.append(f"{CONTACTS_FILE}: cannot be read ({exc})")
+        except READ_ERRORS as exc:
+            problems.append(f"{CONTACTS_FILE}: cannot be read ({type(exc).__name__}: {exc})")
     tracks = _check_npz(path / TRACKS_FILE, problems) if (path / TRACKS_FILE).is_file() else None
     if tracks is not None:
         tr = _check_array(problems, TRACKS_FILE, tracks, "tracks", (None, T, 2), "f")
-        P = tr.shape[0] if tr is not None and tr.ndim == 3 else None
-        _check_array(problems, TRACKS_FILE, tracks, "visibility", (P, T), "b")
-        idx = _check_array(problems, TRACKS_FILE, tracks, "actor_index", (P,), ("i", "u"))
-        _check_array(problems, TRACKS_FILE, tracks, "query_pixels", (P, 2), ("i", "u"))
-        _check_array(problems, TRACKS_FILE, tracks, "points_body_m", (P, 3), "f")
-        per = _check_array(problems, TRACKS_FILE, tracks, "points_per_actor", (N,), ("i", "u"))
+        P = tr[0] if tr is not None and len(tr) == 3 else None
+        for key, shape, kinds in (("tracks", None, None), ("visibility", (P, T), "b"),
+                                  ("query_pixels", (P, 2), ("i", "u")), ("points_body_m", (P, 3), "f")):
+            if shape is None or _check_array(problems, TRACKS_FILE, tracks, key, shape, kinds) is not None:
+                if key in tracks.keys:
+                    _check_load(problems, TRACKS_FILE, tracks, key)  # small: read to find damaged data
+        idx = per = None
+        if _check_array(problems, TRACKS_FILE, tracks, "actor_index", (P,), ("i", "u")) is not None:
+            idx = _check_load(problems, TRACKS_FILE, tracks, "actor_index")
+        if _check_array(problems, TRACKS_FILE, tracks, "points_per_actor", (N,), ("i", "u")) is not None:
+            per = _check_load(problems, TRACKS_FILE, tracks, "points_per_actor")
         if idx is not None and idx.ndim == 1 and len(idx):
             _check(problems, bool(((idx >= 0) & (idx < N)).all()) and all(roles[i] == "active" for i in idx),
                    f"{TRACKS_FILE}: actor_index must point at active actors in [0, {N})")
         if per is not None and P is not None:
             _check(problems, int(per.sum()) == P, f"{TRACKS_FILE}: points_per_actor sums to {per.sum()}, not {P}")
+        tracks.close()
     if (path / PROMPT_FILE).is_file():
-        prompt = (path / PROMPT_FILE).read_text().strip()
-        _check(problems, bool(prompt) and prompt == meta.get("prompt"), f"{PROMPT_FILE}: empty or differs from metadata")
+        try:
+            prompt = (path / PROMPT_FILE).read_text().strip()
+            _check(problems, bool(prompt) and prompt == meta.get("prompt"),
+                   f"{PROMPT_FILE}: empty or differs from metadata")
+        except READ_ERRORS as exc:
+            problems.append(f"{PROMPT_FILE}: cannot be read ({type(exc).__name__}: {exc})")
     if (path / SPEC_FILE).is_file():
         try:
             spec = SceneSpec.from_json((path / SPEC_FILE).read_text())
@@ -562,7 +716,7 @@ def check_bundle(path: str | Path, check_video: bool = True) -> list[str]:
                    f"{SPEC_FILE}: no camera, or bodies differ from metadata actors")
             _check(problems, spec.camera is None or math.isclose(spec.task_rotation_deg, meta["task_rotation_deg"]),
                    f"{SPEC_FILE}: task rotation differs from metadata")
-        except (ValueError, KeyError, TypeError) as exc:
+        except READ_ERRORS as exc:
             problems.append(f"{SPEC_FILE}: not a valid SceneSpec ({exc})")
     return problems
 
@@ -571,4 +725,5 @@ __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_
            "TRAJECTORIES_FILE", "CONTACTS_FILE", "TRACKS_FILE", "METADATA_FILE", "PROMPT_FILE", "SPEC_FILE",
            "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
            "slice_trajectory", "camera_metadata", "make_metadata", "prepare_tmp", "commit", "Sample",
-           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "refuse_imported"]
+           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "refuse_imported", "READ_ERRORS",
+           "read_bundle_file", "damaged_error", "repair_hint"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
 import signal
 import sys
 from dataclasses import dataclass
@@ -50,8 +51,29 @@ def bundle_dir(data_dir: Path, row: ManifestRow) -> Path:
 
 
 def is_complete(data_dir: Path, row: ManifestRow) -> bool:
-    """A bundle is complete when its final directory exists (it is only ever renamed into place)."""
-    return bundle_dir(data_dir, row).is_dir()
+    """A bundle is complete when its final directory exists (it is only ever renamed into place) and passes
+    ``check_bundle`` (shapes from the array headers: milliseconds), so a damaged one is rendered again."""
+    path = bundle_dir(data_dir, row)
+    return path.is_dir() and not B.check_bundle(path, deep=False)
+
+
+def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path) -> list[ManifestRow]:
+    """The rows without a complete bundle. A damaged bundle (one that fails ``check_bundle``) is removed
+    with a warning naming its problems, so that it is rendered again in its place; stale temporaries of
+    every row to render (``.<id>.tmp``, a killed render's) are removed too."""
+    todo = []
+    for row in rows:
+        path = bundle_dir(data_dir, row)
+        if path.is_dir():
+            problems = B.check_bundle(path, deep=False)
+            if not problems:
+                continue
+            log.warning("example %s: the bundle in %s is damaged (%s); rendering it again", row.sample_id, path,
+                        "; ".join(problems[:3]))
+            shutil.rmtree(path)
+        shutil.rmtree(path.with_name(f".{path.name}.tmp"), ignore_errors=True)  # a killed render's leftovers
+        todo.append(row)
+    return todo
 
 
 # -- one example, in this process ------------------------------------------------------------------
@@ -158,7 +180,7 @@ def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path,
     preset = registry.preset(quality)
     if workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
-    todo = [r for r in rows if not is_complete(data_dir, r)]
+    todo = rows_to_render(rows, data_dir)
     skipped = len(rows) - len(todo)
     if skipped:
         log.info("%d of %d examples already have complete bundles in %s; skipping them", skipped, len(rows), data_dir)
@@ -274,7 +296,7 @@ def render_rows_with(executor: Executor, rows: Sequence[ManifestRow], registry: 
     from tqdm import tqdm
 
     registry.preset(quality)  # an unknown preset fails here, not on every worker
-    todo = [r for r in rows if not is_complete(data_dir, r)]
+    todo = rows_to_render(rows, data_dir)
     job = {"config_dirs": [str(d) for d in config_dirs], "preset": quality,
            "data_dir": str(Path(data_dir).resolve()), "device": device, "threads": threads}
     done_ids: list[str] = []
@@ -316,6 +338,8 @@ def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
         raise UserError("rendering needs Blender as a Python module (bpy 4.5, Python 3.11); "
                         "install it with `pip install -e '.[sim]'`")
     data = Path(args.data)
+    if data.exists() and not data.is_dir():
+        raise UserError(f"--data {data}: is a file, not a folder; pass the data folder to render into")
     if B.bundle_dirs(data):
         raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
                         f"DATA/<split>/; did you mean --data {data.parent}?")
@@ -339,17 +363,40 @@ def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
 
 
 def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
+    """One contact sheet per id; an example whose bundle is missing or damaged is reported (naming the file
+    and what to do) and the others are still written. Exit 1 when any failed."""
     split_dir = B.resolve_split_dir(args.data, args.split)
-    path = split_dir / args.id
-    if not path.is_dir():
-        raise UserError(f"{path}: no bundle for example {args.id}; render it first with "
-                        f"`rigidbench render --split {split_dir.name} --ids {args.id}`")
-    out = Path(args.out) if args.out else Path(f"{split_dir.name}_{args.id}_contact_sheet.png")
-    write_contact_sheet(B.Sample(path), out)
-    print(f"wrote {out}")
-    return 0
+    ids = _ids(args.ids)
+    if args.out is not None and len(ids) > 1 and Path(args.out).suffix.lower() == ".png":
+        raise UserError(f"--out {args.out}: several examples need a folder for their sheets, not one PNG file")
+    failed: dict[str, str] = {}
+    for sample_id in ids:
+        path = split_dir / sample_id
+        name = f"{split_dir.name}_{sample_id}_contact_sheet.png"
+        if args.out is None:
+            out = Path(name)
+        elif len(ids) == 1 and Path(args.out).suffix.lower() == ".png":
+            out = Path(args.out)
+        else:
+            out = Path(args.out) / name
+        try:
+            if not path.is_dir():
+                raise UserError(f"{path}: no bundle for example {sample_id}; render it first with "
+                                f"`rigidbench render --split {split_dir.name} --ids {sample_id}`")
+            out.parent.mkdir(parents=True, exist_ok=True)
+            write_contact_sheet(B.Sample(path), out)
+        except EXAMPLE_ERRORS as exc:
+            failed[sample_id] = str(exc)
+            print(f"FAILED {sample_id}: {exc}", file=sys.stderr)
+            continue
+        print(f"wrote {out}")
+    if failed and len(ids) == 1:
+        return 1
+    if failed:
+        print(f"{len(failed)} of {len(ids)} contact sheets failed", file=sys.stderr)
+    return 1 if failed else 0
 
 
-__all__ = ["Failure", "RenderWorker", "bundle_dir", "is_complete", "render_to_bundle",
+__all__ = ["Failure", "RenderWorker", "bundle_dir", "is_complete", "rows_to_render", "render_to_bundle",
            "render_rows", "render_rows_with",
            "cmd_render", "cmd_show", "QUALITIES"]

@@ -40,6 +40,10 @@ from ..registry import load_target
 
 
 #: How an example's seed follows from the base seed (recorded in every run's settings and generation.json).
+#: Folder inside a predictions directory for a run's temporary files (re-rendered bundles, Blender's own);
+#: hidden, so validate and evaluate skip it.
+SCRATCH_DIR = ".scratch"
+
 SEED_RULE = ("per example: the first 4 bytes of sha256('<base seed>/<example id>') (UTF-8) as a big-endian integer, "
              "top bit cleared (0 <= seed < 2**31)")
 
@@ -191,7 +195,8 @@ class Predictor(ABC):
 
 class FailureMode(Predictor):
     """A failure mode ``f(sample, severity, **options)``; options it accepts among ``registry`` (the
-    configuration it re-simulates with) and ``bundle_dir`` (where to keep its re-rendered bundle)."""
+    configuration it re-simulates with), ``bundle_dir`` (where to keep its re-rendered bundle) and
+    ``scratch_dir`` (where to put its temporary files: ``OUT/.scratch`` of the run, None for $TMPDIR)."""
 
     def __init__(self, info: PredictorInfo, function: Callable):
         super().__init__(info)
@@ -199,7 +204,8 @@ class FailureMode(Predictor):
         self._accepts = set(inspect.signature(function).parameters)
 
     def predict(self, sample, ctx: PredictContext) -> Prediction:
-        options = {"registry": ctx.registry, "bundle_dir": ctx.keep_bundle_dir}
+        options = {"registry": ctx.registry, "bundle_dir": ctx.keep_bundle_dir,
+                   "scratch_dir": Path(ctx.out_dir) / SCRATCH_DIR if ctx.out_dir is not None else None}
         return self.function(sample, float(ctx.severity), **{k: v for k, v in options.items() if k in self._accepts})
 
     def settings(self, ctx: PredictContext) -> dict[str, Any]:

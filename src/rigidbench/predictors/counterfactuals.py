@@ -32,7 +32,10 @@ and depth (``groundtruth.tracks``).
 
 The counterfactual bundle is rendered into a temporary directory that is removed afterwards, or
 into ``bundle_dir`` when one is given (kept there, e.g. for ``rigidbench show``; for
-``depth-offset`` its trajectories and tracks are the undisplaced simulation's).
+``depth-offset`` its trajectories and tracks are the undisplaced simulation's). The temporary directory
+lives in ``scratch_dir`` (``rigidbench predict`` passes ``OUT/.scratch``), in a folder of this process
+(``<host>-<pid>``) that also holds Blender's own ``blender_*`` folder when this process first imports
+bpy; what a killed run left there is removed by the next run (``scratch_bundle_dir``).
 """
 
 from __future__ import annotations
@@ -41,6 +44,8 @@ import contextlib
 import dataclasses
 import logging
 import os
+import shutil
+import socket
 import sys
 import tempfile
 from pathlib import Path
@@ -119,6 +124,69 @@ def depth_offsets(positions_m: np.ndarray, camera_m: np.ndarray, offset_m: float
     of length ``offset_m`` along each origin's viewing ray, toward the camera."""
     towards = np.asarray(camera_m, np.float64) - np.asarray(positions_m, np.float64)
     return offset_m * towards / np.linalg.norm(towards, axis=-1, keepdims=True)
+
+
+# -- scratch space ----------------------------------------------------------------------------------
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def process_scratch(scratch_dir: str | Path) -> Path:
+    """``scratch_dir/<host>-<pid>``, this process's scratch folder, created; folders there of processes of
+    this host that no longer run (a killed run's re-renders and Blender temporaries) are removed first."""
+    scratch_dir = Path(scratch_dir)
+    host = socket.gethostname()
+    mine = scratch_dir / f"{host}-{os.getpid()}"
+    if scratch_dir.is_dir():
+        for folder in scratch_dir.iterdir():
+            owner, _, pid = folder.name.rpartition("-")
+            if folder != mine and owner == host and pid.isdigit() and not _alive(int(pid)):
+                shutil.rmtree(folder, ignore_errors=True)
+    mine.mkdir(parents=True, exist_ok=True)
+    return mine
+
+
+def _import_bpy_into(folder: Path) -> None:
+    """Import bpy with TMPDIR set to ``folder`` (restored afterwards), so that Blender's session temporary
+    folder (``blender_*``) lives there; nothing when bpy is already imported or missing."""
+    if "bpy" in sys.modules:
+        return
+    saved = os.environ.get("TMPDIR")
+    os.environ["TMPDIR"] = str(folder)
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        pass  # render_counterfactual says so per example
+    finally:
+        if saved is None:
+            os.environ.pop("TMPDIR", None)
+        else:
+            os.environ["TMPDIR"] = saved
+
+
+@contextlib.contextmanager
+def scratch_bundle_dir(sample_id: str, scratch_dir: str | Path | None = None) -> Iterator[Path]:
+    """A temporary directory for one example's re-rendered bundle, removed afterwards: inside
+    ``process_scratch(scratch_dir)`` when given (the run's output folder), else in $TMPDIR. This example's
+    leftovers from an earlier failure of this process are removed first."""
+    if scratch_dir is None:
+        with tempfile.TemporaryDirectory(prefix=f"rigidbench-{sample_id}-") as tmp:
+            yield Path(tmp)
+        return
+    mine = process_scratch(scratch_dir)
+    _import_bpy_into(mine)
+    for stale in mine.glob(f"rigidbench-{sample_id}-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    with tempfile.TemporaryDirectory(prefix=f"rigidbench-{sample_id}-", dir=mine) as tmp:
+        yield Path(tmp)
 
 
 # -- render -----------------------------------------------------------------------------------------
@@ -213,43 +281,49 @@ def prediction_from_bundle(sample, cf, offsets_m: dict[str, np.ndarray] | None =
 # -- predictors -------------------------------------------------------------------------------------
 
 
-def _rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, offsets_m=None):
+def _rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, offsets_m=None,
+                         scratch_dir: str | Path | None = None):
     overrides = RenderOverrides(offsets_m=offsets_m) if offsets_m else None
     if bundle_dir is not None:
         path = render_counterfactual(sample, spec, registry, bundle_dir, overrides)
         return prediction_from_bundle(sample, Sample(path), offsets_m)
-    with tempfile.TemporaryDirectory(prefix=f"rigidbench-{sample.sample_id}-") as tmp:
-        path = render_counterfactual(sample, spec, registry, Path(tmp) / sample.sample_id, overrides)
+    with scratch_bundle_dir(sample.sample_id, scratch_dir) as tmp:
+        path = render_counterfactual(sample, spec, registry, tmp / sample.sample_id, overrides)
         return prediction_from_bundle(sample, Sample(path), offsets_m)
 
 
 def physics_counterfactual(sample, change: str, severity: float, bundle_dir: str | Path | None = None,
-                           registry: Registry | None = None):
+                           registry: Registry | None = None, scratch_dir: str | Path | None = None):
     """Re-simulate and re-render ``sample`` with PHYSICS_CHANGES[change] at ``severity`` under ``registry``
-    (default: the packaged configuration); returns a Prediction."""
+    (default: the packaged configuration); returns a Prediction. ``scratch_dir``: see ``scratch_bundle_dir``."""
     base = registry if registry is not None else packaged_registry()
     spec, reg = PHYSICS_CHANGES[change](sample.spec, base, float(severity))
     log.info("example %s: rendering the %s counterfactual at severity %.3g", sample.sample_id, change, severity)
-    return _rendered_prediction(sample, spec, reg, bundle_dir)
+    return _rendered_prediction(sample, spec, reg, bundle_dir, scratch_dir=scratch_dir)
 
 
-def gravity(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
-    return physics_counterfactual(sample, "gravity", severity, bundle_dir, registry)
+def gravity(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
+            scratch_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "gravity", severity, bundle_dir, registry, scratch_dir)
 
 
-def restitution(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
-    return physics_counterfactual(sample, "restitution", severity, bundle_dir, registry)
+def restitution(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
+                scratch_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "restitution", severity, bundle_dir, registry, scratch_dir)
 
 
-def friction(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
-    return physics_counterfactual(sample, "friction", severity, bundle_dir, registry)
+def friction(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
+             scratch_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "friction", severity, bundle_dir, registry, scratch_dir)
 
 
-def mass(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
-    return physics_counterfactual(sample, "mass", severity, bundle_dir, registry)
+def mass(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
+         scratch_dir: str | Path | None = None):
+    return physics_counterfactual(sample, "mass", severity, bundle_dir, registry, scratch_dir)
 
 
-def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
+def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
+                 scratch_dir: str | Path | None = None):
     """Every active actor rendered 0.5 s m nearer the camera along its viewing ray, at every frame."""
     traj = sample.trajectory
     _, camera_m = sample.camera_pose
@@ -259,10 +333,11 @@ def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None, 
     log.info("example %s: rendering actors %.3g m nearer the camera", sample.sample_id,
              MAX_DEPTH_OFFSET_M * severity)
     reg = registry if registry is not None else packaged_registry()
-    return _rendered_prediction(sample, sample.spec, reg, bundle_dir, offsets)
+    return _rendered_prediction(sample, sample.spec, reg, bundle_dir, offsets, scratch_dir)
 
 
 __all__ = ["PHYSICS_CHANGES", "gravity_change", "restitution_change", "friction_change",
            "mass_change", "depth_offsets", "render_counterfactual", "carried_tracks", "prediction_from_bundle",
            "physics_counterfactual", "gravity", "restitution", "friction", "mass", "depth_offset",
+           "scratch_bundle_dir", "process_scratch",
            "MAX_GRAVITY_FACTOR", "MAX_MASS_FACTOR", "MAX_DEPTH_OFFSET_M"]

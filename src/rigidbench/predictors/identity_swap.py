@@ -16,7 +16,6 @@ prediction is the reference itself and nothing is rendered.
 from __future__ import annotations
 
 import logging
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +24,7 @@ from ..blender.overrides import RenderOverrides
 from ..config import Registry, registry as packaged_registry
 from ..errors import PredictionError
 from ..groundtruth.bundle import Sample
-from .counterfactuals import render_counterfactual
+from .counterfactuals import render_counterfactual, scratch_bundle_dir
 from .image_space import reference
 
 log = logging.getLogger(__name__)
@@ -82,7 +81,8 @@ def prediction_from_swapped(sample, swapped, severity: float):
     return pred
 
 
-def identity_swap(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None):
+def identity_swap(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
+                  scratch_dir: str | Path | None = None):
     """Actors shown with their donors' appearance, blended in with weight ``severity`` from frame 1 on."""
     if severity == 0:
         return reference(sample, 0.0)
@@ -92,8 +92,8 @@ def identity_swap(sample, severity: float, bundle_dir: str | Path | None = None,
     if bundle_dir is not None:
         path = render_counterfactual(sample, sample.spec, reg, bundle_dir, overrides)
         return prediction_from_swapped(sample, Sample(path), severity)
-    with tempfile.TemporaryDirectory(prefix=f"rigidbench-{sample.sample_id}-") as tmp:
-        path = render_counterfactual(sample, sample.spec, reg, Path(tmp) / sample.sample_id, overrides)
+    with scratch_bundle_dir(sample.sample_id, scratch_dir) as tmp:  # inside the run's output folder
+        path = render_counterfactual(sample, sample.spec, reg, tmp / sample.sample_id, overrides)
         return prediction_from_swapped(sample, Sample(path), severity)
 
 

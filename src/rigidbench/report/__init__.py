@@ -94,6 +94,12 @@ def report_notes(data) -> ReportNotes:
     """Plain-language notes on what the report could not do as usual: official status, one run, skipped metrics."""
     t = data.table
     general = list(t.notes)
+    for run in t.runs:
+        short = run.coverage.get("short") or []
+        if short:
+            general.append(f"{run.name}: {len(short)} clips shorter than the reference span were scored on the "
+                           f"frames they have (--allow-short; coverage {run.coverage_text}); its scores are not "
+                           "comparable with full-length runs.")
     if len(t.models) == 1:
         general.append("Only one run was given: there are no paired comparisons or probability-of-improvement "
                        "matrices, and no correlation across models.")

@@ -95,7 +95,8 @@ def _link(path: Path, root: Path, label: str) -> str:
 def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> str:
     """The runs with their provenance; 'Not official because' lists only what a run adds to the shared reason."""
     with_reasons = any(extra_reasons.get(run.name) for run in data.table.runs)
-    head = ["Model", "Run directory", "Perception", "Official", "Examples", "Failed", "Skipped measurements"]
+    head = ["Model", "Run directory", "Perception", "Official", "Examples", "Coverage of the span", "Failed",
+            "Skipped measurements"]
     head += ["Not official because (beyond the reason above)"] if with_reasons else []
     rows = ['<table class="runs"><thead><tr>' + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr></thead><tbody>"]
     for run in data.table.runs:
@@ -106,7 +107,7 @@ def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> s
         total = f"{run.n_examples}" + (f" of {run.n_reference}" if run.n_reference is not None else "")
         cells = [f'<th scope="row">{_e(run.name)}</th>', f'<td class="path">{_e(run.path)}</td>',
                  f"<td>{_e(backend)}</td>", f"<td>{'yes' if run.official else 'no'}</td>", f"<td>{total}</td>",
-                 f"<td>{failed}</td>", f"<td>{skipped}</td>"]
+                 f"<td>{_e(run.coverage_text)}</td>", f"<td>{failed}</td>", f"<td>{skipped}</td>"]
         if with_reasons:
             cells.append(f"<td>{_e('; '.join(extra_reasons.get(run.name, ()))) or '—'}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")

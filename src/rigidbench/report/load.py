@@ -42,6 +42,17 @@ class RunInfo:
     finished_at: str
     predictions: str = ""  # the predictions directory and reference split as run.json recorded them
     data: str = ""
+    coverage: dict = field(default_factory=dict)  # results.json "coverage": fractions of the reference span
+
+    @property
+    def coverage_text(self) -> str:
+        """Mean coverage of the reference span as a percentage, with the short clips scored; "—" if unknown."""
+        mean = self.coverage.get("mean_fraction")
+        if mean is None:
+            return "—"
+        short = self.coverage.get("short") or []
+        return f"{100 * mean:.0f}%" + (f" ({len(short)} short: {', '.join(short[:3])}"
+                                       f"{' ...' if len(short) > 3 else ''})" if short else "")
 
 
 @dataclass(frozen=True)
@@ -97,7 +108,7 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
     run = _read_json(run_dir / "run.json", run_dir) if (run_dir / "run.json").exists() else {}
     failed = dict(results.get("failed") or {})
     records = {}
-    for path in sorted((run_dir / "examples").glob("*.json")):
+    for path in sorted(p for p in (run_dir / "examples").glob("*.json") if "." not in p.stem):  # not <id>.x.json
         record = _read_json(path, run_dir)
         sample_id = str(record.get("id", path.stem))
         if sample_id in failed:
@@ -124,6 +135,7 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
         finished_at=str(run.get("finished_at", "")),
         predictions=str(run.get("predictions") or ""),
         data=str(run.get("data") or ""),
+        coverage=dict(results.get("coverage") or {}),
     )
     return info, records
 

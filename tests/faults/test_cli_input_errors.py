@@ -1,0 +1,75 @@
+"""Bad command-line input gets one line and exit status 2, never a traceback (issue 26, item 5)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
+
+import published_set as ps  # noqa: E402
+
+from rigidbench.cli import main  # noqa: E402
+from rigidbench.datasets.importer import import_published  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("faults")
+    ps.write_set(root / "src", ps.DEFAULT_SAMPLES[:1])
+    assert import_published(root / "src", root / "data", progress=False).ok
+    return root / "data"
+
+
+def _one_line_error(capsys, *needles: str) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines, "no message"
+    assert all(n in err for n in needles), err
+    return err
+
+
+@pytest.mark.parametrize("command", ["predict", "evaluate"])
+def test_out_pointing_at_a_file(data, tmp_path, capsys, command):
+    target = tmp_path / "not-a-folder"
+    target.write_text("x")
+    if command == "predict":
+        argv = ["predict", "reference", "--data", str(data), "--out", str(target)]
+    else:
+        (tmp_path / "preds").mkdir()
+        argv = ["evaluate", str(tmp_path / "preds"), "--data", str(data), "--out", str(target)]
+    assert main(argv) == 2
+    _one_line_error(capsys, "is a file, not a folder")
+    assert target.read_text() == "x"
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["render", "--workers", "0"], "--workers"),
+    (["render", "--limit", "-1"], "--limit"),
+    (["predict", "reference", "--limit", "-1"], "--limit"),
+    (["evaluate", "p", "--limit", "0"], "--limit"),
+])
+def test_counts_below_one_are_refused(argv, needle, capsys):
+    with pytest.raises(SystemExit) as caught:
+        main(argv)
+    assert caught.value.code == 2
+    _one_line_error(capsys, needle, ">= 1")
+
+
+def test_render_into_a_file(tmp_path, capsys):
+    target = tmp_path / "data"
+    target.write_text("x")
+    assert main(["render", "--split", "eval", "--ids", "00000", "--quality", "test", "--data", str(target)]) == 2
+    _one_line_error(capsys, "is a file, not a folder")
+
+
+def test_a_configuration_file_that_is_not_utf8(tmp_path, capsys):
+    config = tmp_path / "config" / "objects"
+    config.mkdir(parents=True)
+    (config / "odd.yaml").write_bytes("id: odd\nname: caf\xe9\n".encode("latin-1"))
+    assert main(["--config", str(tmp_path / "config"), "manifest", "--split", "eval",
+                 "--out", str(tmp_path / "m.jsonl")]) == 2
+    _one_line_error(capsys, "odd.yaml", "not UTF-8")
