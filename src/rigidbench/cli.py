@@ -17,6 +17,24 @@ DEFAULT_DATA = Path("data")
 CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
 
 
+def positive_int(value: str) -> int:
+    """argparse type: an integer >= 1 (a count such as --limit or --workers); one clear line otherwise."""
+    try:
+        number = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value!r}") from None
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {number}")
+    return number
+
+
+def _output_dir(path: Path, option: str = "--out") -> Path:
+    """A directory to write into: UserError when ``path`` is an existing file (not a folder)."""
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{option} {path}: is a file, not a folder; pass a folder for the outputs")
+    return path
+
+
 def _ids(value: str) -> list[str]:
     return [v.strip() for v in value.replace(",", " ").split() if v.strip()]
 
@@ -114,12 +132,13 @@ def cmd_validate(args, ctx: RunContext) -> int:
 def cmd_evaluate(args, ctx: RunContext) -> int:
     from .evaluation import evaluate
 
-    out = args.out or Path("runs") / args.predictions.name
+    out = _output_dir(args.out or Path("runs") / args.predictions.name)
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
     executor, shard = executor_from(args)
     summary = evaluate(args.predictions, _split_dir(args), out, perception=args.perception, ids=_selected_ids(args),
                        limit=args.limit, model=args.model, perception_options=options, executor=executor, shard=shard,
-                       device=ctx.device, protocol=args.protocol, first_frame_check=not args.no_first_frame_check)
+                       device=ctx.device, protocol=args.protocol, first_frame_check=not args.no_first_frame_check,
+                       allow_short=args.allow_short)
     overall = summary.results["overall"]
     dataset = summary.results.get("dataset", {})
     print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
@@ -176,7 +195,7 @@ def cmd_predict(args, ctx: RunContext) -> int:
     if not args.name:
         raise UserError("name a predictor (rigidbench predict --list shows them)")
     info = predictor_info(args.name)
-    out = args.out or Path("predictions") / info.name
+    out = _output_dir(args.out or Path("predictions") / info.name)
     executor, shard = executor_from(args)
     summary = predict(args.name, _split_dir(args), out, _predict_context(args, ctx), _selected_ids(args), args.limit,
                       dry_run=args.dry_run, executor=executor, shard=shard)
@@ -240,10 +259,10 @@ def _add_render_commands(subparsers) -> None:
                                              "(DATA/<split>/<id>/); reruns skip complete bundles")
     p.add_argument("--split", choices=("train", "eval"), default="eval", help="manifest to draw examples from")
     p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 (default: all)")
-    p.add_argument("--limit", type=int, help="only the first N selected examples")
+    p.add_argument("--limit", type=positive_int, help="only the first N selected examples")
     p.add_argument("--quality", default="paper", help="render preset: paper, preview or test (configs/render.yaml)")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data directory (default: data)")
-    p.add_argument("--workers", type=int, default=1, help="examples rendered at once, one process each (default 1)")
+    p.add_argument("--workers", type=positive_int, default=1, help="examples rendered at once, one process each (default 1)")
     p.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
                    help="Cycles device: auto picks OptiX, then CUDA, then the CPU (default auto)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -252,9 +271,10 @@ def _add_render_commands(subparsers) -> None:
 
     p = subparsers.add_parser("show", help="write a PNG contact sheet of a rendered example "
                                            "(frames, masks, depth, ground-truth tracks)")
-    p.add_argument("id", help="sample id, e.g. 00000")
+    p.add_argument("ids", nargs="+", metavar="ID", help="sample id(s), e.g. 00000 00007")
     _add_data(p)
-    p.add_argument("--out", type=Path, help="output PNG (default: <split>_<id>_contact_sheet.png)")
+    p.add_argument("--out", type=Path, help="output PNG for one id, or a folder for the sheets (default: "
+                                            "<split>_<id>_contact_sheet.png here)")
     p.set_defaults(func=_lazy("rigidbench.pipeline.render:cmd_show"))
 
 
@@ -265,7 +285,7 @@ def _add_render_commands(subparsers) -> None:
 def _add_selection(p: argparse.ArgumentParser, split_default: str = "eval") -> None:
     p.add_argument("--split", choices=("train", "eval"), default=split_default, help="manifest to draw examples from")
     p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 (default: all)")
-    p.add_argument("--limit", type=int, help="only the first N selected examples")
+    p.add_argument("--limit", type=positive_int, help="only the first N selected examples")
 
 
 def _add_model_options(p: argparse.ArgumentParser) -> None:
@@ -374,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the request each example would send and the number of paid calls; send nothing")
     add_executor_arguments(p)
     p.add_argument("--ids", nargs="+", metavar="ID")
-    p.add_argument("--limit", type=int)
+    p.add_argument("--limit", type=positive_int)
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("audit", help="several video models end to end: predict (resuming), validate, evaluate, "
@@ -389,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--yes", action="store_true", help="make the paid API calls the audit counted")
     p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples in the report")
     p.add_argument("--ids", nargs="+", metavar="ID")
-    p.add_argument("--limit", type=int)
+    p.add_argument("--limit", type=positive_int)
     _add_model_options(p)
     p.set_defaults(func=cmd_audit)
 
@@ -416,9 +436,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-first-frame-check", action="store_true",
                    help="score predictions whose first frame is not their reference's (normally refused as made from "
                         "another set's inputs); recorded in results.json")
+    p.add_argument("--allow-short", action="store_true",
+                   help="score clips that do not cover the reference span (normally refused, as by the published "
+                        "evaluator) on the frames they have; marked short in results.json, never official")
     add_executor_arguments(p)
     p.add_argument("--ids", nargs="+", metavar="ID")
-    p.add_argument("--limit", type=int)
+    p.add_argument("--limit", type=positive_int)
     p.set_defaults(func=cmd_evaluate)
     p = sub.add_parser("report", help="tables, figures and report.html from evaluation runs")
     p.add_argument("runs", nargs="+", type=Path, help="run directories (runs/*)")
@@ -433,6 +456,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--probe-report", type=Path, metavar="PATH",
                    help="a probe report (the report.html `rigidbench probe report` wrote, or its directory) to link")
     p.set_defaults(func=_lazy("rigidbench.report:cmd_report"))
+    p = sub.add_parser("readouts", help="physics readouts of evaluation runs: playback speed, gravity, restitution, "
+                       "failure flags (docs/physics.md)")
+    p.add_argument("runs", nargs="+", type=Path, help="run directories (runs/MODEL)")
+    p.add_argument("--examples", action="store_true", help="also one line per example")
+    p.set_defaults(func=_lazy("rigidbench.readouts.records:cmd_readouts"))
     p = sub.add_parser("validate-metrics", help="controlled metric perturbations and one failure-mode response "
                        "curve per metric (figure + table)")
     _add_data(p)

@@ -20,12 +20,14 @@ from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
 from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
 from ..perception.gt import state_path
-from ..video import VIDEO_EXTENSIONS, align_video, read_video, reference_times, resize_frames
-from .aggregation import EVAL_SIZE, aggregate, why_not_official
+from ..video import (VIDEO_EXTENSIONS, align_video, aligned_length, check_video_file, read_video, reference_times,
+                     resize_frames)
+from ..readouts.records import aggregate_readouts, example_readouts
+from .aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
 from .cache import file_hash, input_key, reference_hash, write_json
 from .protocol import Protocol, get_protocol
 from .provenance import run_info
-from .scoring import score_example
+from .scoring import metric_inputs, score_example
 
 log = logging.getLogger(__name__)
 
@@ -42,11 +44,30 @@ class EvaluationSummary:
 
 
 def find_prediction(pred_dir: Path, sample_id: str) -> Path | None:
-    """pred_dir/<id>.<ext> for the one video extension present (several: EvaluationError)."""
-    found = [pred_dir / f"{sample_id}{ext}" for ext in VIDEO_EXTENSIONS if (pred_dir / f"{sample_id}{ext}").exists()]
+    """pred_dir/<id>.<ext> for the one video extension present (several: EvaluationError). The file is
+    checked before anything reads it: a regular file (or a link to one) of at most MAX_VIDEO_BYTES, else
+    VideoError (a FIFO or a link to /dev/zero would block the hash for ever)."""
+    found = [pred_dir / f"{sample_id}{ext}" for ext in VIDEO_EXTENSIONS
+             if (pred_dir / f"{sample_id}{ext}").exists() or (pred_dir / f"{sample_id}{ext}").is_symlink()]
     if len(found) > 1:
         raise EvaluationError(f"{sample_id}: several predictions ({', '.join(p.name for p in found)}); keep one")
-    return found[0] if found else None
+    if not found:
+        return None
+    check_video_file(found[0])
+    state = state_path(found[0])
+    if state.exists() or state.is_symlink():
+        check_video_file(state, what="world-state file")
+    return found[0]
+
+
+def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
+    """Why a clip that does not cover the reference span is refused, and what to do."""
+    return (f"{pred}: the clip's last frame is at {coverage['clip_last_s']:.3f} s, so it covers "
+            f"{coverage['frames']} of the {coverage['reference_frames']} reference frames (0 to "
+            f"{coverage['seconds']:.3f} s); it must cover the reference span 0 to {coverage['span_s']:.3f} s "
+            f"({coverage['reference_frames']} frames at {fps:g} fps), as the published evaluator requires. "
+            "Generate the whole span, or pass --allow-short to score it on the frames it has (marked in "
+            "results.json; not an official result)")
 
 
 def ready_backend(perception: str, options: dict | None = None):
@@ -68,7 +89,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
              ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
              model: str | None = None, progress: bool = True, perception_options: dict | None = None,
              executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None,
-             protocol: str | None = None, first_frame_check: bool = True) -> EvaluationSummary:
+             protocol: str | None = None, first_frame_check: bool = True,
+             allow_short: bool = False) -> EvaluationSummary:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
     holding one split); writes out/examples/<id>.json and .npz, out/results.json and out/run.json.
 
@@ -80,7 +102,10 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     ``protocol`` names the evaluation protocol (``evaluation.protocol``; default ``rigidbench-v1``, the
     published evaluator's rules). ``first_frame_check`` (default on) fails an example whose prediction does
     not start from its reference's first frame (generated from another set's inputs); turning it off is
-    recorded in results.json."""
+    recorded in results.json. A clip that does not cover the reference span (``video.aligned_length``, the
+    rule ``validate`` uses) fails its example, as the published evaluator refuses it; ``allow_short``
+    scores it on the frames it has instead, marked short in its record and results.json (not official).
+    Every record and results.json hold each example's coverage (seconds and fraction of the span scored)."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
@@ -116,7 +141,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             if pred is None:
                 raise EvaluationError(f"{sample_id}: no prediction {sample_id}.mp4 (or .webm/.mov/...) in {pred_dir}")
             state = state_path(pred)
-            pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")
+            pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")  # both checked regular
             ref_key = reference_hash(ref_dir)
         except EXAMPLE_ERRORS as exc:
             failed[sample_id] = str(exc)
@@ -127,14 +152,17 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
                         metrics)
         record_path = out_dir / "examples" / f"{sample_id}.json"
         old = json.loads(record_path.read_text()) if record_path.exists() else {}
-        if old.get("input_key") == key:
+        if old.get("input_key") == key and old.get("coverage", {}).get("short") and not allow_short:
+            failed[sample_id] = short_clip_message(pred, old["coverage"], old["coverage"].get("fps", 24.0))
+            log.warning("example %s failed: %s", sample_id, failed[sample_id])
+        elif old.get("input_key") == key:
             records.append(old)
             reused.append(sample_id)
         else:
             todo.append({"id": sample_id, "key": key})
     job = {"pred_dir": str(pred_dir.resolve()), "data_dir": str(data_dir.resolve()), "out_dir": str(out_dir.resolve()),
            "model": model, "perception": perception, "perception_options": perception_options or {}, "device": device,
-           "protocol": rules.name, "first_frame_check": first_frame_check}
+           "protocol": rules.name, "first_frame_check": first_frame_check, "allow_short": allow_short}
     bar = tqdm(total=len(todo), unit="example", desc="evaluate", disable=not progress or not todo)
 
     def collect(item: dict, result: dict) -> None:
@@ -158,18 +186,21 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     complete_ids = {r["id"] for r in records}
     selected = [p.name for p in refs]
     missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
+    coverage = coverage_summary(records)
     official = (len(all_ids) == EVAL_SIZE and len(selected) == len(all_ids) and complete_ids == set(all_ids)
-                and not failed and not missing_metrics)
+                and not failed and not missing_metrics and not coverage["short"])
     skipped = {m: _skip_reason(records, m, nets) for m in missing_metrics}
     results = {"model": model, "perception": backend.name,
-               "protocol": {**rules.facts(), "first_frame_check": first_frame_check},
+               "protocol": {**rules.facts(), "first_frame_check": first_frame_check, "allow_short": allow_short},
                "dataset": set_identity(refs), "official": official, "metrics": list(metrics),
                "n_examples": len(records), "n_reference": len(all_ids), "failed": failed,
-               "skipped_metrics": skipped, **aggregate(records, metrics)}
+               "skipped_metrics": skipped, "coverage": coverage, **aggregate(records, metrics),
+               "readouts": aggregate_readouts(records, out_dir)}
     if shard.count > 1:
         results["shard"] = str(shard)
     if not official:
-        results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics)
+        results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics,
+                                                       coverage["short"])
     write_json(out_dir / "results.json", results)
     feature_nets = nets if nets is not None else FeatureNets(skipped={m: skipped[m] for m in skipped})
     info = run_info(model, pred_dir, data_dir, backend, feature_nets, metrics, pred_hashes, ref_hashes, timings,
@@ -205,6 +236,7 @@ class EvaluateWorker:
         self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
         self.protocol = get_protocol(job.get("protocol"))
         self.first_frame_check = bool(job.get("first_frame_check", True))
+        self.allow_short = bool(job.get("allow_short", False))
 
     def __call__(self, item: dict) -> dict:
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
@@ -214,15 +246,31 @@ class EvaluateWorker:
             if pred is None:
                 raise EvaluationError(f"{sample_id}: its prediction disappeared from {self.pred_dir}")
             record = _score_one(Sample(self.data_dir / sample_id), pred, self.backend, self.nets, self.model,
-                                item["key"], self.out_dir, timings, self.protocol, self.first_frame_check)
+                                item["key"], self.out_dir, timings, self.protocol, self.first_frame_check,
+                                self.allow_short)
         except EXAMPLE_ERRORS as exc:
             return failure_record(exc)
         return {"status": "succeeded", "record": record, "timings": timings}
 
 
+def clip_coverage(clip_times_s: np.ndarray, ref_times_s: np.ndarray, fps: float) -> dict:
+    """How much of the reference span a clip with frame times clip_times_s (T,) s covers: reference frames
+    covered (``aligned_length``), the seconds and fraction of the span (0 to ref_times_s[-1]) they reach,
+    the clip's last timestamp, and ``short`` when it misses any reference frame."""
+    n = aligned_length(clip_times_s, ref_times_s)
+    span_s = float(ref_times_s[-1]) if len(ref_times_s) else 0.0
+    seconds = float(ref_times_s[n - 1]) if n else 0.0
+    return {"frames": int(n), "reference_frames": int(len(ref_times_s)), "seconds": round(seconds, 6),
+            "span_s": round(span_s, 6), "fraction": round(seconds / span_s, 6) if span_s > 0 else float(n > 0),
+            "clip_last_s": round(float(clip_times_s[-1]), 6) if len(clip_times_s) else 0.0, "fps": float(fps),
+            "short": bool(n < len(ref_times_s))}
+
+
 def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, out_dir: Path,
-               timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True) -> dict:
-    """Decode, perceive (cached by input key), align and score one example; writes its .npz and .json."""
+               timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True,
+               allow_short: bool = False) -> dict:
+    """Decode, check coverage, perceive (cached by input key), align and score one example; writes its .npz
+    and .json. A clip short of the reference span is refused (EvaluationError) unless ``allow_short``."""
     sample_id = sample.sample_id
     t0 = time.time()
     ref_times = reference_times(sample.n_frames, sample.fps)
@@ -235,11 +283,16 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     matches, correlation = check_first_frame(video.frames[0], sample.frame(0)) if first_frame_check else (True, None)
     if not matches:  # generated from another set's inputs: refuse rather than score against the wrong scene
         raise EvaluationError(mismatch_message(pred, sample_id, sample.path.parent, sample.metadata, correlation))
+    coverage = clip_coverage(video.times_s, ref_times, sample.fps)
+    if coverage["short"] and not allow_short:  # after the first-frame check: another set's clip is named as such
+        raise EvaluationError(short_clip_message(pred, coverage, sample.fps))
     video.frames = protocol.prepare(video.frames)
     timings["decode_s"] += time.time() - t0
     t0 = time.time()
     cache = out_dir / "cache" / f"{sample_id}-{backend.name}-{key[:16]}.npz"
-    if cache.exists():
+    if not getattr(backend, "cache", True):  # cheaper to recompute than to store (gt)
+        perceived = backend.perceive(sample, video, pred)
+    elif cache.exists():
         perceived = Perception.load(cache)
     else:
         perceived = backend.perceive(sample, video, pred)
@@ -254,9 +307,11 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     timings["metrics_s"] += time.time() - t0
     record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
               "protocol": protocol.name,
-              "frames_compared": int(gen_rgb.shape[0]), "input_key": key, "perception": backend.name,
+              "frames_compared": int(gen_rgb.shape[0]), "coverage": coverage, "input_key": key,
+              "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
               "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}
+    record["readouts"] = example_readouts(sample, metric_inputs(sample, gen_rgb, aligned, nets), scores, out_dir)
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
     tmp = out_dir / "examples" / f"{sample_id}.tmp.npz"

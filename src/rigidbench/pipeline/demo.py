@@ -23,6 +23,7 @@ from ..metrics import METRICS
 from ..perception.features import load_feature_nets
 from ..predictors import PREDICTORS, PredictContext
 from ..report import build_report
+from ..readouts.records import load_run_readouts, one_line
 from .predict import predict
 from .render import render_rows
 
@@ -93,6 +94,9 @@ def run_demo(out_dir: Path, quality: str = "preview", severity: float = 0.5, per
         report_html = build_report(run_dirs, out_dir / "report", resamples=resamples, seed=0)
     _stage(stages, stages, f"results: means over {len(rows)} examples, {perception} perception", started)
     print("\n" + format_table(table))
+    print("\nphysics readouts (median over examples; docs/physics.md):")
+    for run_dir in run_dirs:  # issue 28: one line per model below the ten measurements
+        print("  " + one_line(*load_run_readouts(run_dir)[:2]))
     if nets.skipped:
         print("\nskipped measurements:")
         for metric, reason in nets.skipped.items():
