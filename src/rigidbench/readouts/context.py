@@ -15,7 +15,11 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigidbench.errors import BundleError
 from rigidbench.metrics.inputs import MetricInputs
+
+#: the scene gravity of Blender's default, which the authors' release never changes (its published set)
+BLENDER_DEFAULT_GRAVITY_M_S2 = 9.81
 
 
 @dataclass
@@ -82,8 +86,10 @@ def context_from_sample(sample, inputs: MetricInputs, iddrift: float | None = No
     support_top = radius = gravity = restitution = None
     try:
         spec = sample.spec
-    except Exception:  # an imported bundle has no scene spec: the readouts needing it are NaN
+    except BundleError:  # an imported bundle has no scene spec: the readouts needing it are NaN
         spec = None
+        if sample.imported:  # the published set was simulated with Blender's default gravity (the release sets none)
+            gravity = BLENDER_DEFAULT_GRAVITY_M_S2
     if spec is not None:
         bodies = {b.name: b for b in spec.bodies}
         support_top = float(spec.support.centre_m[2])

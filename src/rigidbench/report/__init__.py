@@ -34,6 +34,7 @@ from rigidbench.report.examples import build_filmstrips
 from rigidbench.report.figures import build_figures
 from rigidbench.report.html import render_page
 from rigidbench.report.load import ReportError, ScoreTable, load_runs
+from rigidbench.report.readouts import readout_section
 from rigidbench.report.tables import build_tables, to_markdown, write_csvs, write_tables
 
 log = logging.getLogger(__name__)
@@ -164,6 +165,8 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     sweep = find_checkpoints(data)
     if sweep is not None:
         tables += checkpoint_tables(data, sweep)
+    readout_tables, readout_figures = readout_section(run_dirs, figures_dir)  # beside the ten measurements
+    tables += readout_tables
     table_files = write_tables(tables, tables_dir)
     csv_paths = {p.name: p for p in write_csvs(data, tables_dir)}
     if sweep is not None:
@@ -176,6 +179,7 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
         curve = checkpoint_figure(data, sweep, figures_dir)
         if curve is not None:
             figures.append(curve)
+    figures += readout_figures
     probe = probe_link(probe_report, out_dir)
     strips = build_filmstrips(data, out_dir / "examples", n_examples=examples, clips=clips, outlines=outlines)
     notes = report_notes(data)

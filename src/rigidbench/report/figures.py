@@ -264,6 +264,11 @@ def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:
     return _save(fig, out_dir, "poi_heatmaps", "Matched probability of improvement", caption)
 
 
+#: public names for the figure helpers other report modules share
+new_figure = _new_figure
+save_figure = _save
+
+
 def build_figures(data: ReportData, out_dir: Path) -> list[FigureFile]:
     """Write every figure as PNG and PDF into out_dir. Returns them in display order."""
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -76,8 +76,8 @@ details.clips summary { cursor: pointer; font-size: 13px; color: #0b57d0; margin
 # (anchor, heading) of each section, in page order; a section without content is left out.
 SECTIONS = (("models", "Model comparison"), ("examples", "Examples"), ("by-task", "By task"),
             ("by-partition", "By evaluation partition"), ("paired", "Paired comparisons"),
-            ("checkpoints", "Fine-tuned checkpoints"), ("uncertainty", "Uncertainty across all measurements"),
-            ("runs", "Runs"))
+            ("checkpoints", "Fine-tuned checkpoints"), ("readouts", "Physics readouts"),
+            ("uncertainty", "Uncertainty across all measurements"), ("runs", "Runs"))
 
 
 def _e(text) -> str:
@@ -250,6 +250,7 @@ def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[
         for key in ("checkpoint_sweep", "checkpoint_paired", "checkpoint_selected_paired",
                     "checkpoint_selected_tasks", "checkpoint_selected_partitions"):
             body["checkpoints"] += table(key)
+    body["readouts"] = table("readouts", "") + figure("readouts", "")  # beside the ten measurements, not inside
     body["uncertainty"] = figure("metric_intervals", "")
     body["runs"] = ['<div class="scroll">', runs_table(data, notes.extra_reasons), "</div>"]
 
