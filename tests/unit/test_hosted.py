@@ -243,11 +243,17 @@ def test_the_token_reaches_no_file_log_or_error(server, config, tmp_path, caplog
     assert not [m for m in messages + [captured.out, captured.err] if TOKEN in m]
 
 
-def test_a_missing_token_is_a_clear_error_and_nothing_is_sent(server, config, tmp_path, monkeypatch):
+def test_a_missing_token_is_one_up_front_error_and_nothing_is_sent(server, config, tmp_path, monkeypatch, capsys):
     monkeypatch.delenv("REPLICATE_API_TOKEN")
-    summary = run("grok-imagine", make_split(tmp_path / "eval", 2), tmp_path / "out", config)
-    assert len(summary.failed) == 2 and all("REPLICATE_API_TOKEN is not set" in m for m in summary.failed.values())
-    assert server.requests == []
+    split, out = make_split(tmp_path / "eval", 2), tmp_path / "out"
+    with pytest.raises(UserError, match="REPLICATE_API_TOKEN is not set"):
+        run("grok-imagine", split, out, config)
+    assert server.requests == [] and not list(out.glob("*.mp4"))
+    assert not (out / GENERATION_FILE).exists()  # no example ran, so none is recorded as failed
+    command = ["--config", str(config), "predict", "grok-imagine", "--data", str(split), "--out", str(out)]
+    assert main(command) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "REPLICATE_API_TOKEN is not set" in err[0] and "Traceback" not in err[0]
     monkeypatch.setenv("REPLICATE_BASE_URL", "ftp://example.invalid")
     with pytest.raises(UserError, match="REPLICATE_BASE_URL must be an http"):
         run("grok-imagine", make_split(tmp_path / "eval", 2), tmp_path / "out", config)
@@ -356,7 +362,7 @@ def test_a_prediction_past_the_timeout_is_kept_and_waited_for_on_rerun(server, t
     split, out = make_split(tmp_path / "eval", 1), tmp_path / "out"
     server.never_finish = True
     summary = run("veo-3.1", split, out, config)
-    assert "per-example timeout" in summary.failed["00000"] and "a rerun resumes it" in summary.failed["00000"]
+    assert "per-example timeout" in summary.failed["00000"] and "resumes it without paying again" in summary.failed["00000"]
     server.never_finish = False
     again = run("veo-3.1", split, out, config)
     assert again.written == ["00000"] and len(server.creations()) == 1

@@ -9,13 +9,30 @@ versions and per example its status, seed, prompts, timing and whatever the mode
 A rerun with the same settings skips finished examples and retries failed ones; with other
 settings it writes the selected examples again. One example's failure is recorded and the others
 go on. Predictors that allow it (hosted APIs) run several examples at once in threads.
+
+Records: each example's record is written on its own, atomically and fsynced, to
+``OUT/.generation/<id>.json`` as soon as that example is done (whatever order examples finish in), and
+merged into ``generation.json`` as results come in and when the run ends or is interrupted. A rerun merges
+records a killed run left only there, and rebuilds the record of a finished video that has none (from
+the predictor's own state, e.g. a hosted prediction's id, else from the seed and prompts).
+
+Hosted runs in this process stop gracefully on SIGTERM or Ctrl-C: no new example starts and no new
+prediction is created, requests already sent are answered and recorded, outputs already paid for are
+downloaded; then the run ends as interrupted (a second signal ends it at once; the records on disk and
+the predictor's resume state let the rerun go on without paying twice). Temporaries an interrupted run
+left for an example are removed when the example runs again.
 """
 
 from __future__ import annotations
 
+import glob
+import hashlib
 import json
 import logging
+import os
 import shutil
+import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -28,6 +45,7 @@ from ..context import RunContext
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..evaluation.cache import write_json
+from ..jsonio import write_json as write_json_atomic
 from ..evaluation.provenance import versions
 from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported
 from ..perception.gt import state_path
@@ -39,6 +57,9 @@ log = logging.getLogger(__name__)
 
 SETTINGS_FILE = ".predictor.json"  # hidden: validate and evaluate skip it
 GENERATION_FILE = "generation.json"
+RECORDS_DIR = ".generation"  # one record per finished example, durable on its own (hidden)
+FILE_MODE = 0o644  # videos get the permissions of the JSON files beside them (jsonio)
+INTERRUPTED = "interrupted"  # a record's status when the run stopped before the example was done
 VERSION_PACKAGES = ("diffusers", "transformers", "peft", "httpx")
 
 
@@ -64,13 +85,26 @@ def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps:
         video = out_dir / f"{sample_id}{source.suffix.lower() or '.mp4'}"
         tmp_video = out_dir / f".{sample_id}.partial{video.suffix}"  # hidden: validate and evaluate ignore it
         shutil.copyfile(source, tmp_video)
+        os.chmod(tmp_video, FILE_MODE)
         tmp_video.replace(video)
         return
     if pred.frames is None:
         raise TypeError(f"example {sample_id}: a Prediction needs frames or a video_path")
     tmp_video = out_dir / f".{sample_id}.partial.mp4"
     write_video(tmp_video, pred.frames, fps=fps if fps is not None else pred.fps, lossless=pred.lossless)
+    os.chmod(tmp_video, FILE_MODE)
     tmp_video.replace(out_dir / f"{sample_id}.mp4")
+
+
+def remove_temporaries(out_dir: Path, sample_id: str) -> None:
+    """Remove what an interrupted run left of ``sample_id``'s video: ``.<id>.partial.*`` and the encoder's
+    ``..<id>.partial.*.tmp.*``."""
+    for pattern in (glob.escape(f".{sample_id}.partial") + "*", glob.escape(f"..{sample_id}.partial.") + "*"):
+        for stale in Path(out_dir).glob(pattern):
+            try:
+                stale.unlink()
+            except OSError:
+                pass
 
 
 def finished_ids(out_dir: Path, settings: dict, needs_state: bool) -> set[str]:
@@ -79,16 +113,28 @@ def finished_ids(out_dir: Path, settings: dict, needs_state: bool) -> set[str]:
     ``.predictor.json`` records the settings of the last run; with other settings nothing counts as
     finished and the selected examples are written again (other files are left alone)."""
     path = out_dir / SETTINGS_FILE
-    previous = json.loads(path.read_text()) if path.exists() else None
+    previous = _read_settings(path)
     out_dir.mkdir(parents=True, exist_ok=True)
     if previous != settings:
         if previous is not None:
             log.info("%s held %s; writing the selected predictions again for %s", out_dir, previous, settings)
-        path.write_text(json.dumps(settings) + "\n")
+        write_json_atomic(path, settings, indent=None)
         return set()
     videos = [v for v in out_dir.iterdir() if v.suffix.lower() in VIDEO_EXTENSIONS]
     return {v.stem for v in videos
             if "." not in v.stem and not v.name.startswith(".") and (not needs_state or state_path(v).exists())}
+
+
+def _read_settings(path: Path):
+    """The settings ``.predictor.json`` records, None when absent; a damaged one is a UserError (deciding that
+    nothing is finished could pay for hosted predictions again)."""
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: damaged ({type(exc).__name__}); it records the settings of the predictions in "
+                        f"{path.parent}. Delete it to write the selected predictions again") from None
 
 
 def select_examples(split_dir: Path, ids: list[str] | None = None, limit: int | None = None) -> list[Path]:
@@ -102,22 +148,91 @@ def select_examples(split_dir: Path, ids: list[str] | None = None, limit: int | 
     return refs[:limit] if limit is not None else refs
 
 
-class GenerationLog:
-    """generation.json: the run's model and parameters, and one record per example, rewritten atomically
-    after every example (thread-safe); records of earlier runs with the same settings are kept."""
+def settings_digest(settings: dict) -> str:
+    """A short hash of a run's settings: per-example records of other settings are not merged."""
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
-    def __init__(self, path: Path, header: dict):
-        self.path = path
+
+def write_example_record(out_dir: Path, sample_id: str, digest: str, entry: dict) -> None:
+    """``OUT/.generation/<id>.json``: the example's record, atomically and fsynced, as soon as it is done."""
+    write_json_atomic(Path(out_dir) / RECORDS_DIR / f"{sample_id}.json",
+                      {"id": sample_id, "settings": digest, "entry": entry}, durable=True)
+
+
+def _read_json(path: Path, what: str):
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); %s", path, type(exc).__name__, what)
+        return None
+
+
+class GenerationLog:
+    """generation.json: the run's model and parameters, and one record per example (thread-safe).
+
+    Records of earlier runs with the same settings are kept; the per-example records in ``.generation/``
+    (written by the workers as each example finishes) are merged in, and a finished video without a record
+    gets one rebuilt by ``recover(sample_id)``. Rewritten atomically after every example and by ``merge``."""
+
+    def __init__(self, out_dir: Path, header: dict, finished: set[str] = frozenset(), recover=None):
+        self.out_dir = Path(out_dir)
+        self.path = self.out_dir / GENERATION_FILE
+        self.records_dir = self.out_dir / RECORDS_DIR
+        self.digest = settings_digest({k: header[k] for k in ("predictor", "settings")})
         self.lock = threading.Lock()
-        previous = json.loads(path.read_text()) if path.exists() else {}
+        previous = _read_json(self.path, "it is rebuilt from the per-example records") or {}
+        if not isinstance(previous, dict):
+            previous = {}
         same = {k: previous.get(k) for k in ("predictor", "settings")} == {k: header[k] for k in ("predictor", "settings")}
-        self.doc = {**header, "examples": dict(previous.get("examples", {})) if same else {}}
+        examples = previous.get("examples") if same else None
+        self.doc = {**header, "examples": dict(examples) if isinstance(examples, dict) else {}}
+        self._merge_records(remove_others=True)
+        repaired = []
+        for sample_id in sorted(finished):
+            entry = self.doc["examples"].get(sample_id)
+            if isinstance(entry, dict) and entry.get("status") == "succeeded":
+                continue
+            rebuilt = {"status": "succeeded", **((recover(sample_id) if recover else None) or {}),
+                       "recovered": "the video was on disk without its record (an interrupted run); rebuilt on rerun"}
+            rebuilt["status"] = "succeeded"
+            write_example_record(self.out_dir, sample_id, self.digest, rebuilt)
+            self.doc["examples"][sample_id] = rebuilt
+            repaired.append(sample_id)
+        if repaired:
+            log.warning("%s: rebuilt the lost records of %d finished example(s): %s", self.path, len(repaired),
+                        ", ".join(repaired))
+        self._write()
+
+    def _merge_records(self, remove_others: bool = False) -> None:
+        """Take every per-example record of these settings (newer than generation.json's copy)."""
+        if not self.records_dir.is_dir():
+            return
+        for path in sorted(self.records_dir.glob("*.json")):
+            doc = _read_json(path, "ignored")
+            if not isinstance(doc, dict) or not isinstance(doc.get("entry"), dict) or not isinstance(doc.get("id"), str):
+                continue
+            if doc.get("settings") != self.digest:
+                if remove_others:  # a record of other settings: those examples are written again
+                    path.unlink(missing_ok=True)
+                continue
+            self.doc["examples"][doc["id"]] = doc["entry"]
+
+    def _write(self) -> None:
+        self.doc["examples"] = dict(sorted(self.doc["examples"].items()))
+        write_json(self.path, self.doc)
 
     def record(self, sample_id: str, entry: dict) -> None:
         with self.lock:
             self.doc["examples"][sample_id] = entry
-            self.doc["examples"] = dict(sorted(self.doc["examples"].items()))
-            write_json(self.path, self.doc)
+            self._write()
+
+    def merge(self) -> None:
+        """Merge the per-example records (workers elsewhere, or examples whose result never came back)."""
+        with self.lock:
+            self._merge_records()
+            self._write()
 
 
 def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | None = None,
@@ -156,14 +271,39 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
     if summary.skipped:
         log.info("%s: %d of %d predictions already written with these settings; skipping them", out_dir,
                  len(summary.skipped), len(refs))
-    log_file = GenerationLog(out_dir / GENERATION_FILE, {
-        "predictor": info.name, "target": info.target, "kind": info.kind.value, "settings": settings,
-        "model": settings_source.generation_info(ctx), "versions": versions(VERSION_PACKAGES)})
+    preflight = getattr(settings_source, "preflight", None)
+    if todo and preflight is not None:  # e.g. a hosted model's token: one error before any example
+        try:
+            preflight(ctx)
+        except BaseException:
+            if settings_source is not predictor:
+                settings_source.close()
+            raise
+    header = {"predictor": info.name, "target": info.target, "kind": info.kind.value, "settings": settings,
+              "model": settings_source.generation_info(ctx), "versions": versions(VERSION_PACKAGES)}
+    recover = getattr(settings_source, "recover_record", None)
+
+    def rebuild(sample_id: str) -> dict:
+        """What a finished video's lost record can be rebuilt from: the predictor's state, seed and prompts."""
+        entry: dict = {"seed": example_seed(ctx.seed, sample_id)}
+        try:
+            inputs = model_inputs(Sample(split_dir / sample_id))
+            entry.update(prompt=inputs.prompt, negative_prompt=inputs.negative_prompt)
+        except EXAMPLE_ERRORS:
+            pass
+        entry.update((recover(out_dir, sample_id) if recover else None) or {})
+        return entry
+
+    log_file = GenerationLog(out_dir, header, done, rebuild)
     if settings_source is not predictor:
         settings_source.close()
     bar = tqdm(total=len(todo), unit="example", desc=f"predict {info.name}", disable=not progress or not todo)
 
     def collect(sample_id: str, entry: dict) -> None:
+        if entry.get("status") == INTERRUPTED:
+            if entry.get("started"):
+                log_file.record(sample_id, entry)
+            return
         if entry.get("status") == "succeeded":
             summary.written.append(sample_id)
         else:
@@ -176,16 +316,68 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
                          "kind": info.kind.value, "needs_blender": info.needs_blender,
                          "writes_state": info.writes_state},  # so a worker needs no registration of its own
            "split_dir": str(split_dir.resolve()), "out_dir": str(out_dir.resolve()),
-           "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options)}
+           "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options),
+           "records": log_file.digest}
     if local:
         executor = LocalExecutor(threads=max(executor.threads, int(predictor.concurrency(ctx))))
     worker = PredictWorker(job, predictor=predictor, ctx=ctx) if local else None
+    stopper = _GracefulStop(worker) if local and info.kind == Kind.HOSTED and todo else None
     try:
+        if stopper is not None:
+            stopper.install()
         executor.map(WORKER, job, todo, predict_resources(info, ctx), on_result=collect, instance=worker)
     finally:
+        if stopper is not None:
+            stopper.uninstall()
         bar.close()
+        log_file.merge()  # whatever finished, in any order, also when the run is interrupted
+    if stopper is not None and stopper.signal_name:
+        finished = len(summary.written) - len(summary.skipped)
+        log.warning("stopped by %s: %d example(s) finished and recorded, %d failed, %d not done; predictions "
+                    "already created are kept with their ids; rerun the same command to resume without paying twice",
+                    stopper.signal_name, finished, len(summary.failed), len(todo) - finished - len(summary.failed))
+        raise KeyboardInterrupt(stopper.signal_name)
     summary.written.sort()
     return summary
+
+
+class _GracefulStop:
+    """SIGTERM and SIGINT handlers for a hosted run in this process: the first signal stops new work and lets
+    what was already sent (and paid for) be answered and recorded; a second one ends the process at once
+    (the resume state on disk makes that safe). Installed only from the main thread."""
+
+    SIGNALS = ("SIGINT", "SIGTERM")
+
+    def __init__(self, worker: "PredictWorker"):
+        self.worker = worker
+        self.signal_name: str | None = None
+        self.previous: dict = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for name in self.SIGNALS:
+            signum = getattr(signal, name, None)
+            if signum is not None:
+                self.previous[signum] = signal.signal(signum, self._handle)
+
+    def uninstall(self) -> None:
+        for signum, handler in self.previous.items():
+            signal.signal(signum, handler)
+        self.previous = {}
+
+    def _handle(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if self.signal_name is not None:
+            sys.stderr.write(f"rigidbench predict: second {name}: stopping at once; finished examples and created "
+                             "predictions are recorded on disk, rerun the same command to resume\n")
+            sys.stderr.flush()
+            os._exit(128 + signum)
+        self.signal_name = name
+        self.worker.stop()
+        sys.stderr.write(f"rigidbench predict: {name}: no new predictions are created; waiting for the requests in "
+                         "flight and recording what was paid for (send it again to stop at once)\n")
+        sys.stderr.flush()
 
 
 def predict_resources(info, ctx: PredictContext) -> Resources:
@@ -211,11 +403,23 @@ class PredictWorker:
         self.ctx = ctx or PredictContext(RunContext.from_job(job["run"]), job["severity"], job["seed"],
                                          out_dir=self.out_dir, options=MappingProxyType(dict(job["options"])))
         self.predictor = predictor or PredictorInfo(**{**job["predictor"], "kind": Kind(job["predictor"]["kind"])}).create()
+        self.records = job.get("records")  # the settings digest of per-example records (None: none written)
+        self.stopping = threading.Event()
+
+    def stop(self) -> None:
+        """Start no new example; the predictor (if it can) creates nothing new and finishes what is paid for."""
+        self.stopping.set()
+        request_stop = getattr(self.predictor, "request_stop", None)
+        if request_stop is not None:
+            request_stop()
 
     def __call__(self, sample_id: str) -> dict:
+        if self.stopping.is_set():
+            return {"status": INTERRUPTED, "error": "not started: the run was stopped"}
         info, ctx = self.predictor.info, example_context(self.ctx, sample_id)
         started = time.time()
         entry: dict = {"seed": ctx.seed}
+        remove_temporaries(self.out_dir, sample_id)
         try:
             sample = Sample(self.split_dir / sample_id)
             inputs = model_inputs(sample)
@@ -228,7 +432,11 @@ class PredictWorker:
             entry.update(status="succeeded", **pred.metadata)
         except EXAMPLE_ERRORS as exc:
             entry.update(failure_record(exc))
+            if self.stopping.is_set():  # stopped, not failed: the rerun takes it up again
+                entry.update(status=INTERRUPTED, started=True)
         entry["seconds"] = round(time.time() - started, 3)
+        if self.records is not None:
+            write_example_record(self.out_dir, sample_id, self.records, entry)
         return entry
 
     def close(self) -> None:

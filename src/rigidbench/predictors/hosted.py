@@ -15,25 +15,40 @@ for models that take one, the paper's negative prompt. No seed is sent: the pape
 its calls and none is a seed (``seed_field`` in the YAML sends each example's seed, derived from ``--seed`` and
 the example id, to a model that takes one).
 
-Resume: right after a prediction is created its id is stored in ``OUT/.hosted/<id>.json``. A rerun
-of an example with a stored id fetches that prediction instead of creating a new one: a succeeded
-prediction is downloaded again, one still running is waited for, and only a failed or canceled one
-is created anew. So an interrupted download never costs a second paid prediction. A succeeded
-prediction whose output Replicate has already deleted (after about an hour) fails the example with
-that reason; the option ``repay_expired`` (``--repay-expired``) pays for a new one instead.
+Resume (``OUT/.hosted/<id>.json``, written atomically and fsynced): before a prediction is created an
+*intent* is stored there (the model, a SHA-256 of the exact input sent, and the time), and right after
+Replicate answers, the prediction's id. A rerun of an example with a stored id fetches that prediction
+instead of creating a new one: a succeeded prediction is downloaded again, one still running is waited
+for, and only a failed or canceled one is created anew. A rerun of an example with an intent but no id
+(the run was killed while the creation request was in flight, or before its answer was saved) lists the
+account's recent predictions (``GET /v1/predictions``) and adopts the one of the same model and input
+created after the intent (less ``CLOCK_SKEW_S``); only when there is none is a new one created. So
+neither a kill nor an interrupted download costs a second paid prediction. A succeeded prediction whose
+output Replicate has already deleted (after about an hour) fails the example with that reason; the option
+``repay_expired`` (``--repay-expired``) pays for a new one instead. When the example is done, the state
+also keeps its generation record, from which the predict stage rebuilds a record that was lost.
+
+Stopping (``request_stop``, on SIGTERM or Ctrl-C in the predict stage): no new prediction is created and
+no more polls are made; a creation already sent is waited for and its id saved, and an output that has
+already succeeded is still downloaded (it was paid for, and Replicate deletes it after an hour).
+Stale temporaries of an example (``.hosted/.<id>.*.part.mp4``, ``.hosted/.<id>.json.*.tmp``) are removed
+when the example runs again.
 """
 
 from __future__ import annotations
 
 import base64
+import glob
 import hashlib
 import io
 import json
 import logging
+import os
 import re
 import threading
 import time
 from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -44,14 +59,16 @@ from ..errors import ConfigError, PredictionError, UserError
 from ..jsonio import write_json
 from ..video import VIDEO_EXTENSIONS
 from .base import SEED_RULE, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
-from .replicate import (TOKEN_ENV, CallStats, ClientSettings, Deadline, ReplicateClient, ReplicateError,
-                        base_url_from_env, output_url, public_url)
+from .replicate import (TOKEN_ENV, CallStats, ClientSettings, CreationUncertain, Deadline, ReplicateClient,
+                        ReplicateError, StopRequested, base_url_from_env, output_url, public_url, token_from_env)
 
 log = logging.getLogger(__name__)
 
 MODELS_FILE = "models.yaml"
 STATE_DIR = ".hosted"  # hidden: validate, evaluate and the predict stage's scan skip it
 RESTART_STATUSES = ("failed", "canceled", "aborted")
+#: how much earlier than its intent a prediction may be stamped and still be adopted (clocks differ)
+CLOCK_SKEW_S = 120.0
 _SLUG = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*/[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
@@ -206,11 +223,23 @@ def data_uri(data: bytes, mime: str = "image/png") -> str:
 
 
 def _save_state(path: Path, doc: dict) -> None:
-    """A prediction's resume state, fsynced before the rename: it is what keeps a rerun from paying twice."""
+    """A prediction's resume state, fsynced before the rename and the rename fsynced too: it is what keeps
+    a rerun from paying twice."""
     write_json(path, doc, durable=True, sort_keys=True)
+    try:
+        fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:  # pragma: no cover - platforms without directory handles
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
 
 
 def _read_state(path: Path) -> dict | None:
+    """The example's state: a prediction id, or an intent to create one; None when there is neither."""
     try:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
@@ -218,7 +247,89 @@ def _read_state(path: Path) -> dict | None:
     except (OSError, ValueError) as exc:
         log.warning("%s: unreadable (%s); the example starts a new prediction", path, exc)
         return None
-    return doc if isinstance(doc, dict) and isinstance(doc.get("prediction_id"), str) else None
+    if not isinstance(doc, dict):
+        return None
+    if isinstance(doc.get("prediction_id"), str) or isinstance(doc.get("intent"), dict):
+        return doc
+    return None
+
+
+def input_hash(inputs: Mapping[str, Any], without: str | None = None) -> str:
+    """SHA-256 of the input as sent (canonical JSON), optionally leaving out the field ``without``."""
+    body = {k: v for k, v in inputs.items() if k != without}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _parse_time(value: Any) -> float | None:
+    """Unix seconds of an ISO 8601 time such as Replicate's ``created_at`` ("2025-01-02T03:04:05.678Z")."""
+    if not isinstance(value, str) or not value:
+        return None
+    try:
+        when = datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return when.timestamp()
+
+
+def _claimed_ids(state_dir: Path, but: str) -> set[str]:
+    """Prediction ids that other examples' states in ``state_dir`` hold (never adopted for another example)."""
+    ids = set()
+    for path in state_dir.glob("*.json"):
+        if path.name != but and (state := _read_state(path)) and isinstance(state.get("prediction_id"), str):
+            ids.add(state["prediction_id"])
+    return ids
+
+
+class _RecentPredictions:
+    """The account's predictions listed newest first, fetched page by page only as far back as a caller
+    needs and kept for the run (several interrupted examples cost one listing)."""
+
+    MAX_PAGES = 20  # Replicate lists 100 per page
+
+    MAX_PAGES = 20  # Replicate lists 100 per page
+
+    MAX_PAGES = 20  # Replicate lists 100 per page
+
+    MAX_PAGES = 20  # Replicate lists 100 per page
+
+    def __init__(self, client: ReplicateClient):
+        self.client = client
+        self.items: list[dict] = []
+        self._pages = None
+        self.pages = 0
+        self.exhausted = False
+        self.lock = threading.Lock()
+
+    def _oldest(self) -> float | None:
+        times = [t for t in (_parse_time(p.get("created_at")) for p in self.items) if t is not None]
+        return min(times) if times else None
+
+    def since(self, cutoff: float, deadline: Deadline, stats: CallStats) -> list[dict]:
+        """Every listed prediction created at ``cutoff`` (unix seconds) or later. A PredictionError when
+        ``MAX_PAGES`` pages do not reach back that far: then nobody can tell whether one was created."""
+        with self.lock:
+            while not self.exhausted:
+                oldest = self._oldest()
+                if oldest is not None and oldest < cutoff:
+                    break  # listed far enough back
+                if self.pages >= self.MAX_PAGES:
+                    raise PredictionError(f"{self.pages} pages of recent predictions did not reach back to the "
+                                          "interrupted creation")
+                if self._pages is None:
+                    self._pages = self.client.list_predictions(deadline, stats)
+                try:
+                    page = next(self._pages)
+                except StopIteration:
+                    self.exhausted = True
+                    break
+                except BaseException:
+                    self._pages, self.items, self.pages = None, [], 0  # start over next time
+                    raise
+                self.pages += 1
+                self.items.extend(page)
+            return [p for p in self.items if (_parse_time(p.get("created_at")) or 0.0) >= cutoff]
 
 
 # -- the predictor --------------------------------------------------------------------------------------
@@ -235,6 +346,8 @@ class HostedPredictor(Predictor):
         self._configs: dict[tuple, HostedConfig] = {}
         self._client: ReplicateClient | None = None
         self._state_dirs: set[Path] = set()
+        self._stop = threading.Event()
+        self._recent: _RecentPredictions | None = None
 
     # -- configuration ---------------------------------------------------------------------------
 
@@ -308,8 +421,11 @@ class HostedPredictor(Predictor):
                "body": {"input": self._inputs(model, inputs, image, ctx)}}
         if ctx.out_dir is not None:
             state = _read_state(Path(ctx.out_dir) / STATE_DIR / f"{Path(sample.path).name}.json")
-            if state and state.get("status") not in RESTART_STATUSES:
+            if state and "prediction_id" in state and state.get("status") not in RESTART_STATUSES:
                 out["resumes_prediction"] = state["prediction_id"]
+            elif state and "intent" in state:
+                out["resolves_interrupted_creation"] = ("an earlier run was stopped while creating this prediction: "
+                                                        "the account's recent predictions are checked for it first")
         return out
 
     # -- running ------------------------------------------------------------------------------------
@@ -322,6 +438,40 @@ class HostedPredictor(Predictor):
                 self._client = ReplicateClient(cfg.client, max_connections=workers + 4)
             return self._client
 
+    def preflight(self, ctx: PredictContext) -> None:
+        """Called by the predict stage once before any example: the token and base URL must be usable
+        (a UserError, one line, otherwise; never the token itself)."""
+        base_url_from_env()
+        self.config(ctx)
+        token_from_env()
+
+    def request_stop(self) -> None:
+        """The run is stopping (SIGTERM, Ctrl-C): create nothing new, stop polling, finish what was paid for."""
+        self._stop.set()
+
+    def recover_record(self, out_dir: Path, sample_id: str) -> dict | None:
+        """A generation record rebuilt from ``.hosted/<id>.json`` for a video whose record was lost (the run
+        was killed between writing the video and its record); None without a stored prediction id."""
+        state = _read_state(Path(out_dir) / STATE_DIR / f"{sample_id}.json")
+        if not state or not isinstance(state.get("prediction_id"), str):
+            return None
+        record = dict(state.get("record") or {})
+        record.setdefault("prediction_id", state["prediction_id"])
+        record.setdefault("prediction_status", state.get("status"))
+        record.setdefault("created_at", state.get("created_at"))
+        return record
+
+    def _clean_temporaries(self, state_dir: Path, sample_id: str) -> None:
+        """Remove what a killed run left of this example: partial downloads and unrenamed state files."""
+        stem = glob.escape(f".{sample_id}.")
+        for pattern in (f"{stem}*.part*", f"{glob.escape(f'.{sample_id}.json.')}*.tmp"):
+            for stale in state_dir.glob(pattern):
+                try:
+                    stale.unlink()
+                    log.debug("removed %s, left by an interrupted run", stale)
+                except OSError:
+                    pass
+
     def predict(self, sample, ctx: PredictContext) -> Prediction:
         cfg, model = self.config(ctx), self.model(ctx)
         client = self._get_client(ctx)
@@ -332,10 +482,14 @@ class HostedPredictor(Predictor):
         state_dir = Path(ctx.out_dir) / STATE_DIR
         with self._lock:
             self._state_dirs.add(state_dir)
+        if state_dir.is_dir():
+            self._clean_temporaries(state_dir, sample_id)
         state_path = state_dir / f"{sample_id}.json"
-        deadline = Deadline(cfg.client.example_timeout_s)
+        deadline = Deadline(cfg.client.example_timeout_s, stop=self._stop)
         stats = CallStats()
         timings: dict[str, float] = {}
+        kept = (f"prediction {{pid}} is kept in {state_path}; a rerun of the same command resumes it without "
+                "paying again")
 
         t0 = time.monotonic()
         inputs = model_inputs(sample)
@@ -345,19 +499,31 @@ class HostedPredictor(Predictor):
             sort_keys=True).encode()).hexdigest()
         timings["image_s"] = time.monotonic() - t0
 
-        prediction, resumed, replaced = None, False, None
+        prediction, resumed, adopted, replaced = None, False, False, None
         state = _read_state(state_path)
-        if state and state.get("fingerprint") == fingerprint and state.get("status") not in RESTART_STATUSES:
-            prediction = self._resume(client, state["prediction_id"], sample_id, deadline, stats,
-                                      bool(ctx.option("repay_expired", False)))
-            resumed = prediction is not None
-            if prediction is None:
+        same = state is not None and state.get("fingerprint") == fingerprint
+        repay = bool(ctx.option("repay_expired", False))
+        if state and isinstance(state.get("prediction_id"), str):
+            if same and state.get("status") not in RESTART_STATUSES:
+                prediction = self._resume(client, state["prediction_id"], sample_id, deadline, stats, repay)
+                resumed = prediction is not None
+            if prediction is None and (same or state.get("status") in RESTART_STATUSES):
                 replaced = state["prediction_id"]
-        elif state and state.get("status") in RESTART_STATUSES:
-            replaced = state["prediction_id"]
+        elif state and same:  # an intent without an id: the creation may have reached Replicate
+            replaced = state.get("replaces_prediction")
+            found = self._adopt(client, model, state["intent"], sample_id, state_path, deadline, stats)
+            if found is not None:
+                adopted = True
+                _save_state(state_path, {**state, "prediction_id": found["id"], "status": found.get("status"),
+                                         "created_at": found.get("created_at"), "adopted": True})
+                prediction = self._resume(client, found["id"], sample_id, deadline, stats, repay)
+                resumed = prediction is not None
+                if prediction is None:
+                    replaced = found["id"]
 
         sent_as = None
         if prediction is None:
+            deadline.check_stop(f"example {sample_id}: creating a prediction")
             t0 = time.monotonic()
             uri = data_uri(encoded, cfg.image.mime)
             if len(uri) < cfg.image.upload_threshold_bytes:
@@ -367,20 +533,34 @@ class HostedPredictor(Predictor):
                 image_ref = client.upload(encoded, f"{sample_id}.{suffix}", cfg.image.mime, deadline, stats)
                 sent_as = "upload"
             timings["upload_s"] = time.monotonic() - t0
+            body = self._inputs(model, inputs, image_ref, ctx)
+            now = time.time()
+            intent = {"model": model.replicate, "input_sha256": input_hash(body),
+                      "input_sha256_without_image": input_hash(body, without=model.image_field),
+                      "image_field": model.image_field, "at": now,
+                      "at_utc": datetime.fromtimestamp(now, timezone.utc).isoformat(timespec="milliseconds")}
+            deadline.check_stop(f"example {sample_id}: creating a prediction")
+            _save_state(state_path, {"model": model.replicate, "fingerprint": fingerprint, "intent": intent,
+                                     **({"replaces_prediction": replaced} if replaced else {})})
             t0 = time.monotonic()
-            prediction = client.create(model.replicate, self._inputs(model, inputs, image_ref, ctx), deadline, stats)
+            try:
+                prediction = client.create(model.replicate, body, deadline, stats)
+            except CreationUncertain as exc:
+                raise PredictionError(f"example {sample_id}: {exc}. The attempt is recorded in {state_path}: a rerun "
+                                      "of the same command looks for it among the account's recent predictions and "
+                                      "adopts it instead of paying again") from None
             timings["create_s"] = time.monotonic() - t0
             _save_state(state_path, {"prediction_id": prediction["id"], "model": model.replicate,
                                      "fingerprint": fingerprint, "status": prediction.get("status"),
-                                     "created_at": prediction.get("created_at")})
+                                     "created_at": prediction.get("created_at"), "intent": intent,
+                                     **({"replaces_prediction": replaced} if replaced else {})})
         pid = prediction["id"]
 
         t0 = time.monotonic()
         try:
             prediction = client.wait(prediction, deadline, stats)
         except PredictionError as exc:
-            raise PredictionError(f"{exc}; prediction {pid} is kept in {state_path}, a rerun resumes it without "
-                                  "paying again") from None
+            raise PredictionError(f"example {sample_id}: {exc}; {kept.format(pid=pid)}") from None
         finally:
             timings["wait_s"] = time.monotonic() - t0
         status = prediction.get("status")
@@ -398,12 +578,64 @@ class HostedPredictor(Predictor):
         try:
             video, size = client.download(url, state_dir / f"{sample_id}{suffix}", deadline, stats)
         except PredictionError as exc:
-            raise PredictionError(f"prediction {pid}: {exc}") from None
+            raise PredictionError(f"example {sample_id}: prediction {pid}: {exc}; {kept.format(pid=pid)} and its "
+                                  "output fetched again (Replicate keeps outputs for an hour)") from None
         timings["download_s"] = time.monotonic() - t0
+        meta = self._metadata(prediction, model, ctx, stats, timings, resumed, replaced, sent_as, size)
+        meta["adopted"] = adopted
+        meta["output_url"] = client.scrub(public_url(url))
+        meta = client.scrub_all(meta)
         _save_state(state_path, {**(_read_state(state_path) or {"prediction_id": pid}), "status": status,
-                                 "fingerprint": fingerprint, "downloaded": True})
-        return Prediction(video_path=video, metadata=self._metadata(prediction, model, ctx, stats, timings, resumed,
-                                                                     replaced, sent_as, size))
+                                 "fingerprint": fingerprint, "downloaded": True, "record": meta})
+        return Prediction(video_path=video, metadata=meta)
+
+    def _adopt(self, client: ReplicateClient, model: HostedModel, intent: dict, sample_id: str, state_path: Path,
+               deadline: Deadline, stats: CallStats) -> dict | None:
+        """The prediction an interrupted creation made, found among the account's recent predictions: the same
+        model and exact input, created after the intent (less CLOCK_SKEW_S); None when there is none."""
+        at = intent.get("at")
+        if not isinstance(at, (int, float)):
+            log.warning("example %s: %s holds an intent without a time; creating a new prediction", sample_id,
+                        state_path)
+            return None
+        with self._lock:
+            if self._recent is None:
+                self._recent = _RecentPredictions(client)
+            recent = self._recent
+        try:
+            listed = recent.since(at - CLOCK_SKEW_S, deadline, stats)
+        except PredictionError as exc:
+            raise PredictionError(f"example {sample_id}: an earlier run was stopped while creating a prediction "
+                                  f"({state_path}) and the account's predictions could not be checked for it ({exc}); "
+                                  "not creating another one. Rerun later, or check https://replicate.com/predictions "
+                                  f"and delete {state_path} to pay for a new one") from None
+        same_model = [p for p in listed if p.get("model") in (None, intent.get("model"))]
+        exact = [p for p in same_model if isinstance(p.get("input"), dict)
+                 and input_hash(p["input"]) == intent.get("input_sha256")]
+        how = "the same input"
+        if not exact:  # Replicate may store an inline image as a URL of its own: compare everything else
+            field = intent.get("image_field")
+            claimed = _claimed_ids(state_path.parent, state_path.name)
+            exact = [p for p in same_model if isinstance(p.get("input"), dict) and field in p["input"]
+                     and not str(p["input"][field]).startswith("data:") and p["id"] not in claimed
+                     and input_hash(p["input"], without=field) == intent.get("input_sha256_without_image")]
+            how = "the same input apart from the image (which Replicate stores as a URL)"
+            if len(exact) > 1:
+                raise PredictionError(
+                    f"example {sample_id}: an earlier run was stopped while creating a prediction ({state_path}); "
+                    f"{len(exact)} recent predictions ({', '.join(p['id'] for p in exact)}) match it apart from the "
+                    f"image, so none is adopted and none created. Check https://replicate.com/predictions, then "
+                    f"delete {state_path} to pay for a new one")
+        if not exact:
+            log.info("example %s: the interrupted creation of %s did not reach Replicate; creating it now",
+                     sample_id, state_path.name)
+            return None
+        # the first one created after the intent (an earlier one with the same input is another attempt)
+        found = min(exact, key=lambda p: (((_parse_time(p.get("created_at")) or 0.0) < at),
+                                          _parse_time(p.get("created_at")) or 0.0))
+        log.warning("example %s: adopting prediction %s (%s), created by an interrupted run, instead of paying "
+                    "again (%s)", sample_id, found["id"], found.get("status"), how)
+        return found
 
     def _resume(self, client: ReplicateClient, pid: str, sample_id: str, deadline: Deadline,
                 stats: CallStats, repay_expired: bool = False) -> dict | None:

@@ -11,12 +11,21 @@ The base URL is ``$REPLICATE_BASE_URL`` or https://api.replicate.com; the token 
 every message this module produces (httpx messages included), so no file, log line or exception
 of ours carries it.
 
-Robustness: every request has a timeout, bounded by the example's deadline; HTTP 429 waits for
-``Retry-After`` when given, else exponential backoff with jitter; 5xx and network errors are retried
-with the same bounded backoff, then fail with the API's message. A creation request is never
-repeated after it may have reached Replicate without an answer (a read error): that could pay twice.
-Downloads are refused past a size cap, kept only if they decode as video, and written atomically.
-Every failure is a ``PredictionError`` (a ``RigidBenchError``), which the predict stage records.
+Robustness: every request has a timeout, and the example's deadline bounds the whole exchange: each socket
+read and write is cut to what is left of it (a server that trickles a byte every read timeout cannot hold
+a worker past it), an API request as a whole gets at most its read timeout plus ``request_timeout_s``,
+and a download slower than ``min_download_bytes_per_s`` (after the first ``request_timeout_s``) is cut
+off. HTTP 429 waits for ``Retry-After`` when given, else exponential backoff with jitter; 5xx and network
+errors are retried with the same bounded backoff, then fail with the API's message. A creation request
+is never repeated after it may have reached Replicate without an answer (a read error): that could pay
+twice; ``list_predictions`` (``GET /v1/predictions``, newest first, paged by ``next``) lets the caller
+find such a prediction later. Downloads are refused past a size cap, kept only if they decode as video,
+and written atomically. Every failure is a ``PredictionError`` (a ``RigidBenchError``), which the predict
+stage records; ``StopRequested`` is the one raised when the run is stopping (a signal) and no new request
+for a prediction may be sent.
+
+URLs that reach a message, a log line (httpx's own included) or a record go through ``public_url``: no
+user information, query or fragment, credential-looking path parts replaced by [REDACTED].
 """
 
 from __future__ import annotations
@@ -26,14 +35,16 @@ import json
 import logging
 import os
 import random
+import re
 import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import unquote, urljoin, urlsplit, urlunsplit
 
+import httpcore
 import httpx
 
 from ..errors import PredictionError, UserError, VideoError
@@ -62,6 +73,7 @@ class ClientSettings:
     backoff_max_s: float = 60.0
     example_timeout_s: float = 1800.0
     max_output_bytes: int = 300_000_000
+    min_download_bytes_per_s: int = 16_384  # after the first request_timeout_s of a download
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -89,12 +101,22 @@ class ReplicateError(PredictionError):
         self.status_code = status_code
 
 
+class StopRequested(PredictionError):
+    """The run is stopping (SIGTERM or Ctrl-C): no new prediction is created and no more polls are made."""
+
+
 @dataclass
 class Deadline:
-    """The per-example time limit: every wait and request timeout is cut to what is left of it."""
+    """The per-example time limit: every wait, request timeout and socket read is cut to what is left of
+    it. ``stop``: an event the predict stage sets on SIGTERM or Ctrl-C (see ``check_stop``)."""
 
     seconds: float
     start: float = field(default_factory=time.monotonic)
+    stop: threading.Event | None = None
+
+    @property
+    def end(self) -> float:
+        return self.start + self.seconds
 
     def left(self) -> float:
         return self.seconds - (time.monotonic() - self.start)
@@ -105,6 +127,136 @@ class Deadline:
             raise PredictionError(f"{what}: gave up after the per-example timeout of {self.seconds:g} s "
                                   "(client.example_timeout_s in models.yaml)")
         return left
+
+    def stopping(self) -> bool:
+        return self.stop is not None and self.stop.is_set()
+
+    def check_stop(self, what: str) -> None:
+        """StopRequested when the run is stopping: called before anything that could start a new payment
+        or a new wait (a creation, a poll)."""
+        if self.stopping():
+            raise StopRequested(f"{what}: not done, the run is stopping")
+
+
+# -- the whole exchange under the deadline ------------------------------------------------------------
+
+_local = threading.local()
+
+
+@dataclass
+class _Budget:
+    """What the current thread's request may still take: until ``until`` (monotonic), and at least
+    ``min_rate`` bytes/s on average once ``grace`` seconds have passed (0: no rate rule)."""
+
+    until: float
+    reason: str
+    min_rate: float = 0.0
+    grace: float = 0.0
+    start: float = field(default_factory=time.monotonic)
+    received: int = 0
+
+    def timeout(self, timeout: float | None) -> float:
+        now = time.monotonic()
+        left = self.until - now
+        if left <= 0:
+            raise httpcore.ReadTimeout(self.reason)
+        elapsed = now - self.start
+        if self.min_rate and elapsed > self.grace and self.received < self.min_rate * elapsed:
+            raise httpcore.ReadTimeout(f"the transfer is slower than the minimum of {self.min_rate:,.0f} bytes/s "
+                                       f"({self.received:,} bytes in {elapsed:.1f} s; "
+                                       "client.min_download_bytes_per_s)")
+        return left if timeout is None else min(timeout, left)
+
+
+class _BudgetStream:
+    """A network stream whose reads and writes obey the calling thread's budget (see ``_Budget``)."""
+
+    def __init__(self, inner):
+        self._inner = inner
+
+    def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        budget = getattr(_local, "budget", None)
+        if budget is None:
+            return self._inner.read(max_bytes, timeout)
+        try:
+            data = self._inner.read(max_bytes, budget.timeout(timeout))
+        except httpcore.ReadTimeout:
+            budget.timeout(None)  # our own reason when the budget is what ran out
+            raise
+        budget.received += len(data)
+        return data
+
+    def write(self, buffer: bytes, timeout: float | None = None) -> None:
+        budget = getattr(_local, "budget", None)
+        if budget is not None:
+            left = budget.until - time.monotonic()
+            if left <= 0:
+                raise httpcore.WriteTimeout(budget.reason)
+            timeout = left if timeout is None else min(timeout, left)
+        self._inner.write(buffer, timeout)
+
+    def start_tls(self, *args, **kwargs):
+        return _BudgetStream(self._inner.start_tls(*args, **kwargs))
+
+    def close(self) -> None:
+        self._inner.close()
+
+    def get_extra_info(self, info: str):
+        return self._inner.get_extra_info(info)
+
+
+class _BudgetBackend:
+    """httpcore's network backend with every stream wrapped in ``_BudgetStream``."""
+
+    def __init__(self, inner):
+        self._inner = inner
+
+    def connect_tcp(self, *args, **kwargs):
+        return _BudgetStream(self._inner.connect_tcp(*args, **kwargs))
+
+    def connect_unix_socket(self, *args, **kwargs):
+        return _BudgetStream(self._inner.connect_unix_socket(*args, **kwargs))
+
+    def sleep(self, seconds: float) -> None:
+        self._inner.sleep(seconds)
+
+
+def _budget_transport(limits: httpx.Limits) -> httpx.HTTPTransport:
+    """httpx's transport with ``_BudgetBackend`` under its connection pool (httpcore >= 1.0 keeps the backend
+    as ``_network_backend``; if a later version does not, the per-chunk checks of downloads still apply)."""
+    transport = httpx.HTTPTransport(limits=limits, trust_env=False)
+    pool = getattr(transport, "_pool", None)
+    backend = getattr(pool, "_network_backend", None)
+    if backend is not None:
+        pool._network_backend = _BudgetBackend(backend)
+    else:  # pragma: no cover - other httpcore versions
+        log.debug("httpcore has no _network_backend; socket reads are bounded by the read timeout only")
+    return transport
+
+
+class _budget:
+    """Context manager: the calling thread's requests obey ``_Budget(...)`` until it exits."""
+
+    def __init__(self, budget: _Budget):
+        self.budget = budget
+
+    def __enter__(self) -> _Budget:
+        self.previous = getattr(_local, "budget", None)
+        _local.budget = self.budget
+        return self.budget
+
+    def __exit__(self, *exc) -> None:
+        _local.budget = self.previous
+
+
+def _limit(deadline: Deadline, seconds: float, what: str) -> _Budget:
+    """The budget of one request: ``seconds`` from now, or the example's deadline if that comes first."""
+    until = time.monotonic() + seconds
+    if deadline.end <= until:
+        return _Budget(deadline.end, f"{what}: stopped at the per-example timeout of {deadline.seconds:g} s "
+                                     "(client.example_timeout_s in models.yaml), counted over the whole exchange")
+    return _Budget(until, f"{what}: no complete answer within {seconds:g} s (the request's read timeout plus "
+                          "client.request_timeout_s)")
 
 
 def base_url_from_env() -> str:
@@ -117,20 +269,74 @@ def base_url_from_env() -> str:
     return base[:-3] if base.endswith("/v1") else base
 
 
+#: a path segment that looks like a credential: a name such as token, key or signature with a value, a
+#: Replicate API token (r8_...), a JSON web token, or path parameters (;jsessionid=...)
+_CREDENTIAL = re.compile(r"(?i)(token|key|secret|sig|signature|auth|password|passwd|credential|session|bearer)"
+                         r"[^/]*[=:]|\br8_[A-Za-z0-9]{8,}|\beyJ[A-Za-z0-9_-]{8,}\.|;")
+_URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s\"'<>]+")
+
+
 def public_url(url: str) -> str:
-    """``url`` without user information, query or fragment (safe to record)."""
-    parts = urlsplit(url)
-    host = parts.hostname or ""
-    if parts.port:
-        host = f"{host}:{parts.port}"
-    return urlunsplit((parts.scheme, host, parts.path, "", ""))
+    """``url`` without user information, query or fragment, and with every credential-looking path segment
+    replaced by [REDACTED] (safe to log and record)."""
+    try:
+        parts = urlsplit(str(url))
+        host = parts.hostname or ""
+        if parts.port:
+            host = f"{host}:{parts.port}"
+    except ValueError:
+        return REDACTED
+    segments = [REDACTED if _CREDENTIAL.search(unquote(seg)) else seg for seg in parts.path.split("/")]
+    return urlunsplit((parts.scheme, host, "/".join(segments), "", ""))
+
+
+def scrub_text(text: str, secrets=()) -> str:
+    """``text`` with every URL in it made public (``public_url``) and every secret replaced by [REDACTED]."""
+    text = _URL.sub(lambda m: public_url(m.group(0)), str(text))
+    for secret in secrets:
+        if secret:
+            text = text.replace(secret, REDACTED)
+    return text
+
+
+_SECRETS: set[str] = set()  # the tokens of the clients made in this process (for the log filter)
+
+
+class _ScrubLogs(logging.Filter):
+    """Removes URL queries and the token from records of httpx and httpcore (httpx logs every request's
+    full URL at INFO) and of this package's hosted-model modules."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        try:
+            message = record.getMessage()
+        except Exception:  # noqa: BLE001 - a broken record is not ours to fix
+            return True
+        clean = scrub_text(message, tuple(_SECRETS))
+        if clean != message:
+            record.msg, record.args = clean, ()
+        return True
+
+
+_LOG_FILTER = _ScrubLogs()
+for _name in ("httpx", "httpcore.connection", "httpcore.http11", "httpcore.proxy", __name__,
+              __name__.rpartition(".")[0] + ".hosted"):
+    logging.getLogger(_name).addFilter(_LOG_FILTER)
 
 
 def token_from_env() -> str:
+    """The API token from ``$REPLICATE_API_TOKEN``; a UserError (one line, never the token) when it is not set
+    or cannot be one: API tokens are printable ASCII without spaces."""
     token = os.environ.get(TOKEN_ENV, "").strip()
     if not token:
         raise UserError(f"{TOKEN_ENV} is not set: hosted models call Replicate's API with your API token; "
                         f"export {TOKEN_ENV}=... (https://replicate.com/account/api-tokens) or use --dry-run")
+    for i, ch in enumerate(token):
+        if not "\x21" <= ch <= "\x7e":
+            kind = ("a space or line break" if ch.isspace() else
+                    "a non-ASCII character" if ord(ch) > 127 else "a control character")
+            raise UserError(f"{TOKEN_ENV} holds {kind} (character {i + 1} of {len(token)}); an API token is "
+                            "printable ASCII without spaces: copy it again from https://replicate.com/account/api-tokens "
+                            "and export it in quotes")
     return token
 
 
@@ -157,13 +363,15 @@ class ReplicateClient:
         self.settings = settings
         self.base_url = (base_url or base_url_from_env()).rstrip("/")
         self._token = token if token is not None else token_from_env()
+        if self._token:
+            _SECRETS.add(self._token)
         self._api_host = urlsplit(self.base_url).netloc
         self._sleep = sleep
         self._rng = random.Random()
         self._rng_lock = threading.Lock()
         limits = httpx.Limits(max_connections=max_connections, max_keepalive_connections=max_connections)
         # No default headers: the token is added per request, to API requests only.
-        self._http = httpx.Client(limits=limits, follow_redirects=False, trust_env=False)
+        self._http = httpx.Client(transport=_budget_transport(limits), follow_redirects=False, trust_env=False)
 
     def __repr__(self) -> str:  # never the token
         return f"ReplicateClient({public_url(self.base_url)!r})"
@@ -184,6 +392,22 @@ class ReplicateClient:
                                  headers=headers, read_timeout=self.settings.request_timeout_s + wait, idempotent=False)
         return self._prediction(response, f"creating a {model} prediction")
 
+    def list_predictions(self, deadline: Deadline, stats: CallStats):
+        """The account's predictions, newest first, page by page (``GET /v1/predictions``, following ``next``
+        on the API's host only). Yields each page's list of predictions."""
+        url = f"{self.base_url}/v1/predictions"
+        while True:
+            response = self._request("GET", url, "listing recent predictions", deadline, stats)
+            body = self._json(response, "listing recent predictions")
+            results = body.get("results") if isinstance(body, dict) else None
+            if not isinstance(results, list):
+                raise ReplicateError("listing recent predictions: Replicate's answer has no results list")
+            yield [p for p in results if isinstance(p, dict) and isinstance(p.get("id"), str)]
+            nxt = body.get("next")
+            if not isinstance(nxt, str) or not nxt:
+                return
+            url = urljoin(url, nxt)
+
     def get(self, prediction_id: str, deadline: Deadline, stats: CallStats) -> dict[str, Any]:
         """The prediction ``prediction_id`` as Replicate has it now (always read from the base URL)."""
         what = f"prediction {prediction_id}"
@@ -195,7 +419,9 @@ class ReplicateClient:
         interval = self.settings.poll_interval_s
         while prediction.get("status") not in TERMINAL:
             what = f"prediction {prediction['id']} ({prediction.get('status')})"
+            deadline.check_stop(f"waiting for {what}")
             self._pause(interval, deadline, what)
+            deadline.check_stop(f"waiting for {what}")
             interval = min(interval * 1.5, self.settings.poll_max_interval_s)
             prediction = self.get(prediction["id"], deadline, stats)
         return prediction
@@ -215,8 +441,8 @@ class ReplicateClient:
         """Download ``url`` to ``dest`` (atomically, without the token) if it is under the size cap and
         decodes as video; returns (dest, bytes)."""
         if urlsplit(url).scheme not in ("http", "https"):
-            raise PredictionError(f"the output {url[:60]!r} is not an http(s) URL")
-        what = f"downloading {public_url(url)}"
+            raise PredictionError(f"the output {self.scrub(public_url(url))[:80]!r} is not an http(s) URL")
+        what = f"downloading {self.scrub(public_url(url))}"
         cap = self.settings.max_output_bytes
         dest = Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
@@ -226,9 +452,11 @@ class ReplicateClient:
             stats.requests += 1
             fd, tmp_name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.stem}.", suffix=f".part{dest.suffix}")
             tmp = Path(tmp_name)
+            budget = _limit(deadline, deadline.seconds, what)  # the whole download: until the deadline ...
+            budget.min_rate, budget.grace = self.settings.min_download_bytes_per_s, self.settings.request_timeout_s
             try:
                 try:
-                    with os.fdopen(fd, "wb") as fh, self._http.stream(
+                    with _budget(budget), os.fdopen(fd, "wb") as fh, self._http.stream(
                             "GET", url, timeout=self._timeout(left), follow_redirects=True) as response:
                         if response.status_code == 429 or response.status_code >= 500:
                             raise _Retry(response.status_code, _retry_after(response), self._message(response))
@@ -253,6 +481,7 @@ class ReplicateClient:
                 except httpx.TransportError as exc:
                     raise _Retry(None, None, self.scrub(f"{type(exc).__name__}: {exc}")) from None
                 _check_video(tmp, what)
+                os.chmod(tmp, 0o644)  # as the JSON files beside it (mkstemp makes it private)
                 tmp.replace(dest)
                 return dest, size
             except _Retry as retry:
@@ -271,11 +500,19 @@ class ReplicateClient:
         return httpx.Timeout(t, read=min(read if read is not None else t, max(left, 0.001)))
 
     def scrub(self, text: str) -> str:
-        """``text`` with the token replaced by [REDACTED]."""
-        text = str(text)
-        if self._token:
-            text = text.replace(self._token, REDACTED)
-        return text
+        """``text`` with every URL made public (no query, credential-looking parts redacted) and the token
+        replaced by [REDACTED]."""
+        return scrub_text(text, (self._token,) if self._token else ())
+
+    def scrub_all(self, value: Any) -> Any:
+        """``value`` (JSON-like) with ``scrub`` applied to every string in it."""
+        if isinstance(value, str):
+            return self.scrub(value)
+        if isinstance(value, dict):
+            return {self.scrub(str(k)): self.scrub_all(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [self.scrub_all(v) for v in value]
+        return value
 
     def _request(self, method: str, url: str, what: str, deadline: Deadline, stats: CallStats, *,
                  json_body: Any = None, files: Any = None, headers: dict[str, str] | None = None,
@@ -285,18 +522,22 @@ class ReplicateClient:
         attempt = 0
         while True:
             left = deadline.check(what)
+            if not idempotent:
+                deadline.check_stop(what)  # no new paid request once the run is stopping
             stats.requests += 1
+            timeout = self._timeout(left, read_timeout)
+            budget = _limit(deadline, (timeout.read or 0) + self.settings.request_timeout_s, what)
             try:
-                response = self._http.request(method, url, json=json_body, files=files, headers=self._headers(headers),
-                                              timeout=self._timeout(left, read_timeout))
+                with _budget(budget):
+                    response = self._http.request(method, url, json=json_body, files=files,
+                                                  headers=self._headers(headers), timeout=timeout)
             except httpx.TransportError as exc:
                 message = self.scrub(f"{type(exc).__name__}: {exc}")
                 if not idempotent and not isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout,
                                                            httpx.PoolTimeout)):
                     # The request may have reached Replicate and created a (paid) prediction: do not repeat it.
-                    raise PredictionError(f"{what}: {message}; the request may have reached Replicate, so it is "
-                                          "not repeated (check https://replicate.com/predictions before rerunning)") \
-                        from None
+                    raise CreationUncertain(f"{what}: {message}; the request may have reached Replicate, so it is "
+                                            "not repeated") from None
                 attempt = self._retry_or_fail(_Retry(None, None, message), attempt, what, deadline, stats)
                 continue
             if response.status_code == 429 or response.status_code >= 500:
@@ -367,6 +608,10 @@ class ReplicateClient:
         if not isinstance(body, dict) or not isinstance(body.get("id"), str) or not body["id"]:
             raise ReplicateError(f"{what}: Replicate's answer is not a prediction (no id)")
         return body
+
+
+class CreationUncertain(PredictionError):
+    """A creation request that may have reached Replicate without an answer (it is not repeated)."""
 
 
 class _Retry(Exception):
