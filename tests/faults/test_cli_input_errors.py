@@ -73,3 +73,18 @@ def test_a_configuration_file_that_is_not_utf8(tmp_path, capsys):
     assert main(["--config", str(tmp_path / "config"), "manifest", "--split", "eval",
                  "--out", str(tmp_path / "m.jsonl")]) == 2
     _one_line_error(capsys, "odd.yaml", "not UTF-8")
+
+
+@pytest.mark.parametrize("damage", [b'{"id": "00000", "input_k', b"[1, 2]", b"\xff\xfe"])
+def test_a_damaged_score_record_is_scored_again(data, tmp_path, damage):
+    from rigidbench.evaluation import evaluate
+    from rigidbench.perception.features import FeatureNets
+
+    preds = tmp_path / "preds"
+    assert main(["predict", "reference", "--data", str(data), "--out", str(preds)]) == 0
+    first = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
+    assert first.evaluated == ["00000"]
+    (tmp_path / "run" / "examples" / "00000.json").write_bytes(damage)
+    second = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
+    assert second.evaluated == ["00000"] and not second.failed
+    assert second.results["overall"]["iou"]["mean"] == first.results["overall"]["iou"]["mean"]

@@ -151,7 +151,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
         key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}|protocol:{rules.name}", nets_key,
                         metrics)
         record_path = out_dir / "examples" / f"{sample_id}.json"
-        old = json.loads(record_path.read_text()) if record_path.exists() else {}
+        old = previous_record(record_path)
         if old.get("input_key") == key and old.get("coverage", {}).get("short") and not allow_short:
             failed[sample_id] = short_clip_message(pred, old["coverage"], old["coverage"].get("fps", 24.0))
             log.warning("example %s failed: %s", sample_id, failed[sample_id])
@@ -207,6 +207,19 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
                     time.time() - started, evaluated, reused, failed)
     write_json(out_dir / "run.json", {**info, "protocol": rules.facts(), "dataset": results["dataset"]})
     return EvaluationSummary(out_dir, evaluated, reused, failed, skipped, official, results)
+
+
+def previous_record(path: Path) -> dict:
+    """The score record an earlier run left at ``path``, or {} when there is none or it is damaged (a
+    truncated or foreign file is not an error: the example is simply scored again and the file replaced)."""
+    if not path.exists():
+        return {}
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        log.warning("%s: cannot be read (%s); scoring this example again", path, exc)
+        return {}
+    return doc if isinstance(doc, dict) else {}
 
 
 def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> str:
