@@ -8,6 +8,7 @@ import os
 import sys
 from pathlib import Path
 
+from .argtypes import positive_int
 from .context import RunContext
 from .errors import RigidBenchError, UserError
 from .train.commands import add_commands as add_train_commands
@@ -15,17 +16,6 @@ from .probe.commands import add_commands as add_probe_commands
 
 DEFAULT_DATA = Path("data")
 CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
-
-
-def positive_int(value: str) -> int:
-    """argparse type: an integer >= 1 (a count such as --limit or --workers); one clear line otherwise."""
-    try:
-        number = int(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value!r}") from None
-    if number < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {number}")
-    return number
 
 
 def _output_dir(path: Path, option: str = "--out") -> Path:

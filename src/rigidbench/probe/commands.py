@@ -10,6 +10,7 @@ from ..context import RunContext
 from ..errors import UserError
 from ..perception.device import resolve_device
 from ..registry import load_target
+from ..argtypes import positive_int
 
 PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
 INTERVENTION_TAUS = "0.3,0.5,0.7"
@@ -104,7 +105,7 @@ def add_commands(subparsers) -> None:
                                                       f"least noisy (default {PAPER_TAUS})")
     p.add_argument("--random-seed", type=int, default=0,
                    help="seed of --backbone random's re-initialisation (default 0, the release's); recorded")
-    p.add_argument("--limit", type=int, help="only the first N clips of the cache (sorted by id)")
+    p.add_argument("--limit", type=positive_int, help="only the first N clips of the cache (sorted by id)")
     p.add_argument("--chunk-size", type=int, default=64, help="clips per shard (default 64)")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -11,6 +11,7 @@ from ..context import RunContext
 from ..errors import UserError
 from ..executors import Resources, Shard, make_executor
 from ..registry import load_target
+from ..argtypes import positive_int
 from .config import MODEL_SPECS, NAMED_CONFIGS, load_train_config
 
 
@@ -80,7 +81,7 @@ def add_commands(subparsers) -> None:
     p.add_argument("--model", choices=tuple(MODEL_SPECS), default="wan-2.2",
                    help="wan-2.2 (640x352, 49 frames; the paper) or tiny (random tiny models, CPU tests)")
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
-    p.add_argument("--limit", type=int, help="only the first N bundles (sorted by id)")
+    p.add_argument("--limit", type=positive_int, help="only the first N bundles (sorted by id)")
     p.add_argument("--shard-size", type=int, default=64, help="clips per latent shard (default 64)")
     p.add_argument("--resize", choices=("bicubic", "lanczos"), default="bicubic",
                    help="frame resize filter: bicubic (PIL's default, the authors' release; default) or lanczos")
