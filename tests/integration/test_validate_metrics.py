@@ -83,3 +83,21 @@ def test_skipped_iddrift_is_reported_and_pixel_l2_is_still_measured(validation):
     assert modes["ate3d"] == "slow" and modes["ssim"] == "gamma" and modes["bgdrift"] == "background-wobble"
     iou = [v for _, v in curve(rows, "metric_curve", "iou", "main")]
     assert iou[0] == 1.0 and iou[2] < iou[0]
+
+
+def test_readout_curves_are_written_with_their_truths(validation):
+    """validate-metrics adds the physics readouts under the failure modes that set them (issue 28): the
+    playback-speed curve of `slow` follows 1 / (1 + s), and the flag cases name the flags they expect."""
+    out, _ = validation
+    with open(out / "readout_curves.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    slow = [r for r in rows if r["mode"] == "slow" and r["readout"] == "speed"]
+    assert [float(r["severity"]) for r in slow] == [0.0, 0.5, 1.0]
+    for r in slow:
+        assert float(r["truth"]) == pytest.approx(1 / (1 + float(r["severity"])))
+    flags = {r["mode"]: r["truth"] for r in rows if r["readout"] == "flags"}
+    assert flags == {"reference": "none", "static": "frozen", "camera-drift": "camera"}
+    assert (out / "readout_curves.png").stat().st_size > 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["readouts"]["rows"] == len(rows) and any(line.startswith("readout speed under slow")
+                                                            for line in summary["lines"])

@@ -110,6 +110,21 @@ def _rows_for(mode: str, severity: float, sample, r: dict, bundle) -> list[dict]
              "truth": ",".join(sorted(FLAG_CASES[mode])) or "none"}]
 
 
+def write_readout_csv(rows: list[dict], path: Path) -> Path:
+    """The readout rows as CSV (mode, severity, example, task, readout, measured, truth), atomically."""
+    import csv
+
+    fields = ("mode", "severity", "example", "task", "readout", "measured", "truth")
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: row.get(k) for k in fields})
+    tmp.replace(path)
+    return path
+
+
 def write_readout_figure(rows: list[dict], path: Path) -> Path | None:
     """Measured against simulated readout per mode (one panel per readout); PNG at ``path``."""
     import matplotlib

@@ -21,6 +21,7 @@ from .curves import RENDERED_MODES, curve_plan, mode_sweep
 from .identity import CHANGES, collect_patches, swap_vs_gamma
 from .output import (Row, curve_rows, display, mean_se, select, skipped_rows, write_csv, write_figure,
                      write_markdown)
+from .readouts import readout_rows, readout_summary_lines, write_readout_csv, write_readout_figure
 from .ray import DIRECTIONS, ray_sweep, scene_from_sample, slope_through_origin
 
 log = logging.getLogger(__name__)
@@ -166,14 +167,19 @@ def validate_metrics(data_dir: str | Path, out_dir: str | Path, *, examples: int
                            skipped={k: v for k, v in nets.skipped.items() if k != "iddrift"}, device=nets.device)
     id_reason = nets.skipped.get("iddrift", "no identity feature network was given")
 
-    log.info("[1/4] ATE-3D along vs across the viewing ray")
+    log.info("[1/5] ATE-3D along vs across the viewing ray")
     rows, numbers = ray_rows(samples, severities)
-    log.info("[2/4] BGDrift: coherent translation vs independent jitter")
+    log.info("[2/5] BGDrift: coherent translation vs independent jitter")
     bg, bg_numbers = background_rows(severities, bg_trials, seed)
-    log.info("[3/4] IdDrift: identity swap vs gamma%s", "" if nets.identity else f" (IdDrift skipped: {id_reason})")
+    log.info("[3/5] IdDrift: identity swap vs gamma%s", "" if nets.identity else f" (IdDrift skipped: {id_reason})")
     idr, id_numbers, donor_note = identity_rows(samples, severities, trials, n_patches, seed, nets.identity, id_reason)
-    log.info("[4/4] one response curve per metric (failure modes, gt perception)")
+    log.info("[4/5] one response curve per metric (failure modes, gt perception)")
     curve, curves, skipped = curve_section(samples, severities, nets, with_rendered, progress)
+    log.info("[5/5] physics readouts under the failure modes that set them (gt perception)")
+    readouts, readout_failures = readout_rows(samples, np.linspace(0.0, 1.0, severities), with_rendered, nets,
+                                              progress)
+    write_readout_csv(readouts, out_dir / "readout_curves.csv")
+    figure = write_readout_figure(readouts, out_dir / "readout_curves.png")
     rows = rows + bg + idr + curve
     if nets.identity is None:
         skipped.setdefault("iddrift", id_reason)
@@ -182,7 +188,10 @@ def validate_metrics(data_dir: str | Path, out_dir: str | Path, *, examples: int
     summary = {"examples": [f"{s.sample_id} ({s.task})" for s in samples], "severities": severities,
                "seed": seed, "with_rendered": with_rendered, "numbers": numbers, "curves": curves,
                "skipped": skipped, "identity_donors": donor_note,
-               "lines": summary_lines(numbers, skipped, donor_note) + curve_summary(rows)}
+               "lines": summary_lines(numbers, skipped, donor_note) + curve_summary(rows)
+               + readout_summary_lines(readouts),
+               "readouts": {"rows": len(readouts), "failures": readout_failures,
+                            "figure": figure.name if figure is not None else None}}
     write_csv(rows, out_dir / f"{TABLE_STEM}.csv")
     write_markdown(rows, summary, out_dir / f"{TABLE_STEM}.md")
     write_figure(rows, skipped, out_dir / TABLE_STEM)
