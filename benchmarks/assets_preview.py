@@ -1,6 +1,6 @@
 """Render PNG contact sheets of every procedural object and scene, and time the builders.
 
-    python benchmarks/assets_preview.py --out /tmp/rb_preview [--what objects|scenes|timing|all]
+    python benchmarks/assets_preview.py [--quick] --out /tmp/rb_preview [--what objects|scenes|timing|all]
         [--tile 192] [--samples 16] [--only apple,kiwi]
 
 Writes objects.png (two views per object: 30 deg azimuth at 10 deg elevation and a higher back
@@ -244,7 +244,11 @@ def main() -> None:
     parser.add_argument("--tile", type=int, default=192, help="object tile size / scene view width in pixels")
     parser.add_argument("--samples", type=int, default=16)
     parser.add_argument("--only", default="", help="comma-separated ids to restrict the sheet to")
+    parser.add_argument("--quick", action="store_true", help="smoke run: builder timing of one object, no rendering")
     args = parser.parse_args()
+    if args.quick:
+        args.what = 'timing'
+        args.only = 'apple'
     args.out.mkdir(parents=True, exist_ok=True)
     only = [s for s in args.only.split(",") if s] or None
     result = {}

@@ -14,7 +14,7 @@ Sections:
           one 1-step warm-up) and peak memory (GPU: torch's peak allocation during the video; CPU:
           the peak resident set of a fresh process that builds the pipeline and generates).
 
-Usage: python benchmarks/generate.py [--sections hosted,local] [--examples 24] [--repeats 3]
+Usage: python benchmarks/generate.py [--quick] [--sections hosted,local] [--examples 24] [--repeats 3]
        [--local-size auto|tiny|real] [--local-steps N] [--local-repeats 1] [--local-models wan-2.2,cosmos-2.5]
 """
 
@@ -227,7 +227,12 @@ def main() -> None:
     parser.add_argument("--local-steps", type=int, default=None, help="local: inference steps (default: the paper's 50)")
     parser.add_argument("--local-repeats", type=int, default=1, help="local: timed videos per model (the best counts)")
     parser.add_argument("--local-models", default=",".join(LOCAL_RUNS), help="local: comma-separated model names")
+    parser.add_argument("--quick", action="store_true", help="smoke run: the hosted section only, 2 examples, 1 repeat")
     args = parser.parse_args()
+    if args.quick:
+        args.sections = 'hosted'
+        args.examples = 2
+        args.repeats = 1
     names = [s.strip() for s in args.sections.split(",") if s.strip()]
     unknown = sorted(set(names) - set(SECTIONS))
     if unknown:

@@ -24,7 +24,21 @@ ViT-L/14-sized transformer (plain torch, same widths and depth as DINOv2-L: 24 b
 1024, 16 heads, MLP 4096, 14-pixel patches, 257 tokens) on a few patches and extrapolates to
 the clip's patch count.
 
-Usage: .venv/bin/python benchmarks/metrics.py [--frames 49] [--skip-vit] [--vit-patches 8]
+Every metric is called the way the evaluator calls it: through the registry
+(``METRICS[name].load()``) on one ``MetricInputs`` per example, so ATE-3D and SI-MSE share one
+disparity alignment in ``array_metrics_total`` (the one-by-one rows refit it, each on fresh inputs).
+``--repeat N`` times the array metrics N times and reports the fastest (min of N wall and, separately,
+of N CPU seconds; the runs are interleaved with the one-by-one rows); only the first run has
+tracemalloc on, so with N >= 2 the times are free of its overhead. ``ssim_filter_floor`` is the cost of the filtering alone: the
+five separable 11-tap Gaussian filters per frame (cv2.sepFilter2D on float32 (H, W, 3)), frames split
+over the same threads as SSIM; SSIM cannot cost less than that.
+
+Printed JSON: ``machine`` (cpus, torch_threads, python), ``clip`` (frames, width, height, actors,
+tracks, corners, build_seconds, iddrift_pairs), ``timings`` (per row: seconds, cpu_seconds and the
+three memory figures), ``values`` (the ten metric values, rounded to 1e-6), ``target``.
+
+Usage: .venv/bin/python benchmarks/metrics.py [--frames 49] [--repeat 3] [--skip-vit] [--vit-patches 8]
+       .venv/bin/python benchmarks/metrics.py --quick      # 4 frames at 320x176, no ViT (seconds)
 """
 
 from __future__ import annotations
@@ -68,8 +82,11 @@ def _reset_hwm() -> bool:
 
 
 @contextmanager
-def measure(results: dict, name: str):
-    """Record seconds and the three memory figures of the enclosed block under results[name]."""
+def measure(results: dict, name: str, trace: bool = True):
+    """Record seconds and the three memory figures of the enclosed block under results[name].
+
+    ``trace=False`` leaves tracemalloc off (its hook on every Python allocation slows code that makes
+    many small numpy calls, such as SSIM's strips, by a third): timed repeats run without it."""
     gc.collect()
     rss0 = _rss_mb()
     hwm_reset = _reset_hwm()  # also lowers getrusage's peak to the current RSS on Linux
@@ -83,8 +100,10 @@ def measure(results: dict, name: str):
             samples.append(_rss_mb())
 
     sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
-    tracemalloc.start()
+    if not hwm_reset:  # VmHWM gives the peak where clear_refs works; sample only where it does not
+        sampler.start()
+    if trace:
+        tracemalloc.start()
     t0 = time.perf_counter()
     try:
         yield
@@ -92,16 +111,18 @@ def measure(results: dict, name: str):
         seconds = time.perf_counter() - t0
         usage = resource.getrusage(resource.RUSAGE_SELF)
         cpu = usage.ru_utime + usage.ru_stime - usage0.ru_utime - usage0.ru_stime
-        _, peak = tracemalloc.get_traced_memory()
-        tracemalloc.stop()
+        peak = tracemalloc.get_traced_memory()[1] if trace else None
+        if trace:
+            tracemalloc.stop()
         stop.set()
-        sampler.join()
+        if sampler.is_alive():
+            sampler.join()
         hwm = _hwm_mb() if hwm_reset else None
         peak_rss = max(max(samples), hwm or 0.0)
         results[name] = {
             "seconds": round(seconds, 3),
             "cpu_seconds": round(cpu, 3),
-            "tracemalloc_peak_mb": round(peak / 2**20, 1),
+            "tracemalloc_peak_mb": None if peak is None else round(peak / 2**20, 1),
             "rss_peak_delta_mb": round(peak_rss - rss0, 1),
             "rss_peak_method": "VmHWM reset via clear_refs" if hwm_reset else "2 ms RSS sampling",
             "ru_maxrss_delta_mb": round(usage.ru_maxrss / 1024 - maxrss0, 1),
@@ -209,23 +230,56 @@ def corner_tracks(clip: dict, seed: int = 1):
     return tracks, conf
 
 
-def array_metrics(clip: dict, corners, conf) -> dict:
-    """The eight metrics that need no neural network, as the evaluator would call them."""
-    from rigidbench.metrics import appearance, background, depth, masks, tracks
+ARRAY_METRICS = ("iou", "centroid_l2", "chamfer", "ate", "ate3d", "si_mse", "ssim", "bgdrift")
 
-    alignment = depth.fit_disparity_alignment(clip["disparity"], clip["ref_depth"])
-    return {
-        "iou": masks.iou(clip["ref_masks"], clip["gen_masks"]),
-        "centroid_l2": masks.centroid_l2(clip["ref_masks"], clip["gen_masks"]),
-        "chamfer": masks.chamfer(clip["ref_masks"], clip["gen_masks"]),
-        "ate": tracks.ate(clip["ref_tracks"], clip["gen_tracks"], clip["ref_vis"], clip["gen_vis"], HEIGHT),
-        "ate3d": depth.ate3d(clip["gen_tracks"], clip["ref_vis"], clip["gen_vis"], clip["actor_index"],
-                             clip["disparity"], clip["ref_depth"], clip["K"], clip["R_c"], clip["t_c"],
-                             clip["ref_pos"], alignment=alignment),
-        "si_mse": depth.si_mse(clip["disparity"], clip["ref_depth"], alignment=alignment),
-        "ssim": appearance.ssim(clip["ref_rgb"], clip["gen_rgb"]),
-        "bgdrift": background.bgdrift(corners, conf, HEIGHT),
-    }
+
+def metric_inputs(clip: dict, corners, conf, lpips_net=None, identity_net=None):
+    """One ``MetricInputs`` of the synthetic clip, as the evaluator builds it for an example."""
+    from rigidbench.metrics import MetricInputs
+
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = clip["R_c"], clip["t_c"]
+    n_points, frames = clip["ref_tracks"].shape[:2]
+    return MetricInputs(
+        ref_rgb=clip["ref_rgb"], gen_rgb=clip["gen_rgb"], ref_masks=clip["ref_masks"], gen_masks=clip["gen_masks"],
+        ref_tracks=clip["ref_tracks"], gen_tracks=clip["gen_tracks"], ref_visibility=clip["ref_vis"],
+        gen_visibility=clip["gen_vis"], track_actor=clip["actor_index"], ref_depth_m=clip["ref_depth"],
+        gen_disparity=clip["disparity"], K=clip["K"], camera_to_world=c2w, actor_positions_m=clip["ref_pos"],
+        ref_points_m=np.zeros((n_points, frames, 3)), bg_tracks=corners, bg_confidence=conf,
+        lpips_net=lpips_net, identity_net=identity_net)
+
+
+def array_metrics(clip: dict, corners, conf) -> dict:
+    """The eight metrics that need no neural network, through the registry on one MetricInputs."""
+    from rigidbench.metrics import METRICS
+
+    inputs = metric_inputs(clip, corners, conf)
+    return {name: METRICS[name].load()(inputs) for name in ARRAY_METRICS}
+
+
+def ssim_filter_floor(clip: dict) -> None:
+    """The five separable Gaussian filters of SSIM on every frame, frames split over SSIM's threads."""
+    import cv2
+
+    from rigidbench.metrics import appearance
+
+    win = appearance.gaussian_window()
+    frames = clip["ref_rgb"].shape[0]
+    shape = clip["ref_rgb"].shape[1:]
+    ssim_workers = getattr(appearance, "ssim_workers", lambda n: min(4, os.cpu_count() or 1, n))  # older trees
+
+    def run(part: range) -> None:
+        src, dst = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        for t in part:
+            for _ in range(5):
+                cv2.sepFilter2D(src, cv2.CV_32F, win, win, dst=dst, borderType=cv2.BORDER_REFLECT)
+
+    workers = ssim_workers(frames)
+    threads = [threading.Thread(target=run, args=(range(i, frames, workers),)) for i in range(workers)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
 
 
 def vit_l14():
@@ -254,10 +308,18 @@ def vit_l14():
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=49)
+    parser.add_argument("--repeat", type=int, default=1, help="time the array metrics N times; report the fastest")
     parser.add_argument("--skip-vit", action="store_true", help="do not time the ViT-L/14-sized encoder")
     parser.add_argument("--vit-patches", type=int, default=8, help="patches in the timed ViT forward")
     parser.add_argument("--lpips-batch", type=int, default=4)
+    parser.add_argument("--quick", action="store_true", help="4 frames at 320x176, no ViT: a smoke run (seconds)")
+    parser.add_argument("--array-only", action="store_true",
+                        help="only the eight array metrics and the SSIM floor (no LPIPS, IdDrift or ViT)")
     args = parser.parse_args()
+    global WIDTH, HEIGHT
+    if args.quick:
+        WIDTH, HEIGHT = 320, 176
+        args.frames, args.skip_vit, args.repeat = min(args.frames, 4), True, 1
 
     import torch
 
@@ -274,31 +336,40 @@ def main() -> None:
     results["clip"]["build_seconds"] = round(time.perf_counter() - t0, 1)
     timings: dict = {}
 
-    with measure(timings, "array_metrics_total"):
-        values = array_metrics(clip, corners, conf)
+    from rigidbench.metrics import METRICS
+
+    values: dict = {}
+    runs: dict = {}
+    repeats = max(1, args.repeat)
+    for r in range(repeats):  # interleaved: whole stage, floor, then each metric alone
+        trace = r == 0  # the first run measures memory (tracemalloc on); the others time without it
+        with measure(runs, f"array_metrics_total#{r}", trace):
+            values = array_metrics(clip, corners, conf)
+        with measure(runs, f"ssim_filter_floor#{r}", trace):
+            ssim_filter_floor(clip)
+        for name in ARRAY_METRICS:  # one by one, each on fresh inputs (the alignment is refitted)
+            inputs = metric_inputs(clip, corners, conf)
+            with measure(runs, f"{name}#{r}", trace):
+                METRICS[name].load()(inputs)
+    for key in sorted({k.split("#")[0] for k in runs}, key=lambda k: list(runs).index(f"{k}#0")):
+        row = dict(runs[f"{key}#0"])  # memory figures from the traced run
+        row["seconds"] = min(runs[f"{key}#{r}"]["seconds"] for r in range(repeats))
+        row["cpu_seconds"] = min(runs[f"{key}#{r}"]["cpu_seconds"] for r in range(repeats))
+        row["rss_peak_delta_mb"] = max(runs[f"{key}#{r}"]["rss_peak_delta_mb"] for r in range(repeats))
+        row["runs"] = repeats
+        timings[key] = row
+    timings["ssim_filter_floor"]["ssim_over_floor_cpu"] = round(
+        timings["ssim"]["cpu_seconds"] / max(timings["ssim_filter_floor"]["cpu_seconds"], 1e-9), 2)
     with measure(timings, "corner_detection"):
         from rigidbench.metrics.background import detect_background_corners
         detect_background_corners(clip["gen_rgb"][0], clip["gen_masks"][0])
 
-    # One by one (the alignment is refitted inside ate3d and si_mse here).
-    from rigidbench.metrics import METRICS
-    calls = {
-        "iou": lambda: METRICS["iou"].load()(clip["ref_masks"], clip["gen_masks"]),
-        "centroid_l2": lambda: METRICS["centroid_l2"].load()(clip["ref_masks"], clip["gen_masks"]),
-        "chamfer": lambda: METRICS["chamfer"].load()(clip["ref_masks"], clip["gen_masks"]),
-        "ate": lambda: METRICS["ate"].load()(clip["ref_tracks"], clip["gen_tracks"], clip["ref_vis"],
-                                             clip["gen_vis"], HEIGHT),
-        "ate3d": lambda: METRICS["ate3d"].load()(clip["gen_tracks"], clip["ref_vis"], clip["gen_vis"],
-                                                 clip["actor_index"], clip["disparity"], clip["ref_depth"],
-                                                 clip["K"], clip["R_c"], clip["t_c"], clip["ref_pos"]),
-        "si_mse": lambda: METRICS["si_mse"].load()(clip["disparity"], clip["ref_depth"]),
-        "ssim": lambda: METRICS["ssim"].load()(clip["ref_rgb"], clip["gen_rgb"]),
-        "bgdrift": lambda: METRICS["bgdrift"].load()(corners, conf, HEIGHT),
-    }
-    for name, call in calls.items():
-        with measure(timings, name):
-            call()
-
+    if args.array_only:
+        results["timings"] = timings
+        results["values"] = {k: (None if not np.isfinite(v.value) else round(float(v.value), 6))
+                             for k, v in values.items()}
+        print(json.dumps(results, indent=1))
+        return
     torch.manual_seed(0)
     net = lpips_net.build_lpips_alex(random_backbone=True)
     with measure(timings, "lpips_alexnet_random_weights"):

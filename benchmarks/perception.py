@@ -19,7 +19,7 @@ The paper clip is 49 frames at 1280x704 with up to 4 actors; on a CPU shrink it 
 --size, --actors and the input-size options (the JSON records what ran). Reported per network:
 wall seconds, process CPU seconds, parameters (millions) and the peak GPU memory (CUDA only).
 
-Usage: .venv/bin/python benchmarks/perception.py [--frames 49] [--size 1280x704] [--actors 4]
+Usage: .venv/bin/python benchmarks/perception.py [--quick] [--frames 49] [--size 1280x704] [--actors 4]
        [--device cuda|cpu] [--models sam2,cotracker,vda,dinov2,lpips] [--sam2-input 1024]
        [--vda-input 384] [--dinov2-patches N] [--repeats 1]
 """
@@ -189,7 +189,14 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=1,
                         help="time each network this many times and report the fastest (the first run on a GPU "
                              "includes kernel selection and allocator warm-up)")
+    parser.add_argument("--quick", action="store_true", help="smoke run: LPIPS on 4 frames at 64x48 on the CPU")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.frames = 4
+        args.size = '64x48'
+        args.actors = 1
+        args.device = 'cpu'
+        args.models = 'lpips'
 
     import torch
 

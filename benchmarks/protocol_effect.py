@@ -66,6 +66,8 @@ def main() -> int:
     os.dup2(stdout_fd, 1)
     json.dump(out, sys.stdout, indent=1)
     print()
+    sys.stdout.flush()
+    os.dup2(2, 1)  # Blender's exit-time report (unfreed blocks) must not follow the JSON
     return 0
 
 

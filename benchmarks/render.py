@@ -2,7 +2,7 @@
 the best device present (on a CPU only ``--paper-frames`` frames, 2 by default; a paper frame
 takes tens of seconds there).
 
-    python benchmarks/render.py [--ids 00000 00014 00025 00030] [--paper-frames 2] [--skip-paper]
+    python benchmarks/render.py [--quick] [--ids 00000 00014 00025 00030] [--paper-frames 2] [--skip-paper]
                                 [--preview-samples N]
 
 Per example and preset it reports the camera search, simulation and setup seconds, the data
@@ -95,7 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preview-samples", type=int, default=None,
                         help="render `preview` with this many samples instead of the preset's (to measure the "
                              "speed/noise trade-off; the JSON records the samples used)")
+    parser.add_argument("--quick", action="store_true", help="smoke run: one example at `preview`, no `paper` frames")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.ids = args.ids[:1]
+        args.skip_paper = True
     logging.basicConfig(level=logging.WARNING)
     from rigidbench import manifest
     from rigidbench.config import registry

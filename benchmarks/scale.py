@@ -6,7 +6,7 @@ worker, each rendering in its own process. Each configuration renders the same e
 fresh directory, so nothing is skipped as already done. Ray's overhead per task is measured with
 a worker that does nothing.
 
-Usage: python benchmarks/scale.py [--examples 6] [--quality test]
+Usage: python benchmarks/scale.py [--quick] [--examples 6] [--quality test]
 """
 
 from __future__ import annotations
@@ -61,7 +61,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--examples", type=int, default=6)
     parser.add_argument("--quality", default="test")
+    parser.add_argument("--quick", action="store_true", help="smoke run: one example per configuration")
     args = parser.parse_args()
+    if args.quick:
+        args.examples = 1
 
     import ray
 

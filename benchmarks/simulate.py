@@ -5,7 +5,7 @@ BLAS threads are limited to one. Workloads:
   --source hand      one hand-built spec per task (tests/integration/conftest.py)
   --source eval|train  the first manifest row of each task, built with build_scene_spec
   --spec FILE ...    scene_spec.json files
-Usage: python benchmarks/simulate.py [--source hand] [--repeat 5] [--all-cores]
+Usage: python benchmarks/simulate.py [--quick] [--source hand] [--repeat 5] [--all-cores]
 """
 
 from __future__ import annotations
@@ -61,7 +61,10 @@ def main(argv=None) -> int:
     parser.add_argument("--spec", nargs="+", help="scene_spec.json files (overrides --source)")
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--all-cores", action="store_true", help="do not pin to one CPU")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 repeat")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.repeat = 1
 
     pinned = False
     if not args.all_cores and hasattr(os, "sched_setaffinity"):

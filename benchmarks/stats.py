@@ -4,7 +4,7 @@ Paper size: 8 models x 10 metrics x 100 examples, 20,000 bootstrap resamples (ap
 Synthetic scores; one cell has two non-finite examples, as Veo 3.1 on IdDrift does in the paper,
 so the run exercises a second example-count group.
 
-Usage: python benchmarks/stats.py [--repeats 3] [--resamples 20000]
+Usage: python benchmarks/stats.py [--quick] [--repeats 3] [--resamples 20000]
 """
 
 from __future__ import annotations
@@ -53,7 +53,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--resamples", type=int, default=20000)
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 repeat, 200 resamples")
     args = parser.parse_args()
+    if args.quick:
+        args.repeats = 1
+        args.resamples = 200
     scores = synthetic_scores()
     b = args.resamples
 

@@ -10,7 +10,7 @@ every frame as a JPEG, quality 95, 4:4:4). A tiny random network's frames are no
 loss here is an upper end for what 4:2:0 crf 18 does to real outputs; ``--reference BUNDLE`` measures
 the same on a rendered reference clip (its lossless PNG frames) for natural content.
 
-Usage: python benchmarks/storage.py [--size 224x128] [--frames 13] [--steps 50] [--reference data/eval/00015]
+Usage: python benchmarks/storage.py [--quick] [--size 224x128] [--frames 13] [--steps 50] [--reference data/eval/00015]
 """
 
 from __future__ import annotations
@@ -88,7 +88,12 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=13, help="4k + 1 frames (default 13)")
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--reference", type=Path, help="also measure a rendered bundle's frames/ (PNG)")
+    parser.add_argument("--quick", action="store_true", help="smoke run: a 64x64 clip of 5 frames, 2 steps")
     args = parser.parse_args()
+    if args.quick:
+        args.steps = 2
+        args.frames = 5
+        args.size = '64x64'
     width, height = (int(v) for v in args.size.split("x"))
     frames = tiny_video(width, height, args.frames, args.steps)
     out = {"video": {"model": "tiny wan-2.2", "size": [width, height], "frames": args.frames, "steps": args.steps},

@@ -1,6 +1,6 @@
 """Time fine-tuning steps and print JSON.
 
-    python benchmarks/train.py [--cpu-steps 20] [--gpu-steps 4] [--no-gpu] [--modes lora,full]
+    python benchmarks/train.py [--quick] [--cpu-steps 20] [--gpu-steps 4] [--no-gpu] [--modes lora,full]
 
 CPU: the ``tiny`` configuration (LoRA and full) on a synthetic cache of tiny latents: seconds per
 optimizer step (median over the steps after the first) and the process's peak resident memory.
@@ -127,7 +127,12 @@ def main() -> None:
     ap.add_argument("--no-cpu", action="store_true")
     ap.add_argument("--timeout", type=int, default=900, help="seconds per measurement")
     ap.add_argument("--worker", nargs=3, metavar=("KIND", "MODE", "STEPS"), help=argparse.SUPPRESS)
+    ap.add_argument("--quick", action="store_true", help="smoke run: 2 LoRA steps of the tiny configuration on the CPU")
     args = ap.parse_args()
+    if args.quick:
+        args.cpu_steps = 2
+        args.no_gpu = True
+        args.modes = 'lora'
     if args.worker:
         kind, mode, steps = args.worker
         print(json.dumps(worker(kind, mode, int(steps))))

@@ -5,9 +5,11 @@ SSIM reproduces `pytorch_msssim.ssim(X, Y, data_range=255, size_average=False)` 
 float32 frames: an 11-tap Gaussian (sigma 1.5) built exactly as pytorch_msssim builds it,
 applied separably with 'valid' support (the border of 5 pixels is dropped), K = (0.01, 0.03),
 SSIM map averaged per channel and then over channels. The filtering runs in float32 with
-OpenCV, one frame at a time in a small thread pool, so a 49 x 704 x 1280 clip needs a few
-hundred MB instead of the ~11 GB of a whole-clip torch call; values agree with pytorch_msssim
-to float32 rounding (~1e-7).
+OpenCV, one frame at a time in a small thread pool (frames split over the cores this process may
+use), so a 49 x 704 x 1280 clip needs a few hundred MB instead of the ~11 GB of a whole-clip torch
+call; the per-pixel formula then runs on cache-sized strips of rows and each strip's map is summed
+in float64 by OpenCV. Values agree with pytorch_msssim to float32 rounding (~1e-7); the cost is
+within about 1.5x of the five Gaussian filters alone (`benchmarks/metrics.py`, ssim_filter_floor).
 """
 
 from __future__ import annotations
@@ -39,13 +41,21 @@ def gaussian_window(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA) ->
     return (g / g.sum(dtype=np.float32)).astype(np.float32)
 
 
+#: Rows of the SSIM map combined at a time: the per-pixel formula runs on strips whose temporaries
+#: stay in the core's cache instead of streaming five full-frame float32 maps through memory.
+SSIM_STRIP_ROWS = 32
+
+
 class _SSIMWorkspace:
-    """Eight reusable float32 (H, W, C) buffers; reusing them avoids page-faulting ~90 MB per frame."""
+    """Reusable float32 buffers: (H, W, C) for the two inputs, a product and the five filtered maps,
+    and (SSIM_STRIP_ROWS, W, C) strip temporaries; reusing them avoids page-faulting ~90 MB per frame."""
 
     def __init__(self, shape: tuple[int, ...]) -> None:
         self.shape = shape
         self.x, self.y, self.tmp, self.mu1, self.mu2, self.s11, self.s22, self.s12 = (
             np.empty(shape, np.float32) for _ in range(8))
+        strip = (min(SSIM_STRIP_ROWS, shape[0]),) + tuple(shape[1:])
+        self.m11, self.m22, self.m12, self.den = (np.empty(strip, np.float32) for _ in range(4))
 
 
 def _workspace(store: threading.local, shape: tuple[int, ...]) -> _SSIMWorkspace:
@@ -62,67 +72,91 @@ def ssim_frame(ref: np.ndarray, gen: np.ndarray, data_range: float = 255.0,
     SSIM map); `store` lets consecutive calls in one thread reuse their buffers."""
     import cv2
 
+    ref, gen = np.asarray(ref), np.asarray(gen)
     shape = ref.shape if ref.ndim == 3 else ref.shape + (1,)
     ws = _workspace(store if store is not None else threading.local(), shape)
     np.copyto(ws.x, np.asarray(ref).reshape(shape), casting="unsafe")
     np.copyto(ws.y, np.asarray(gen).reshape(shape), casting="unsafe")
-    h, w = shape[:2]
+    h, w, channels = shape
     win = gaussian_window()
     half = SSIM_WIN_SIZE // 2
     one = np.ones(1, dtype=np.float32)
     # pytorch_msssim skips smoothing along a dimension shorter than the window.
-    kx, cx = (win, slice(half, w - half)) if w >= SSIM_WIN_SIZE else (one, slice(None))
-    ky, cy = (win, slice(half, h - half)) if h >= SSIM_WIN_SIZE else (one, slice(None))
+    kx, (c0, c1) = (win, (half, w - half)) if w >= SSIM_WIN_SIZE else (one, (0, w))
+    ky, (r0, r1) = (win, (half, h - half)) if h >= SSIM_WIN_SIZE else (one, (0, h))
 
     def blur(src: np.ndarray, dst: np.ndarray) -> None:
-        # Filtered over the whole frame; only the 'valid' interior [cy, cx] is used in the end,
+        # Filtered over the whole frame; only the 'valid' interior is used in the end,
         # so the border mode never reaches the result.
         out = cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, dst=dst, borderType=cv2.BORDER_REFLECT)
         if not np.shares_memory(out, dst):  # OpenCV reallocated (e.g. a single-channel frame)
             dst[...] = out.reshape(dst.shape)
 
     x, y, tmp = ws.x, ws.y, ws.tmp
-    mu1, mu2, s11, s22, s12 = ws.mu1, ws.mu2, ws.s11, ws.s22, ws.s12
-    blur(x, mu1)
-    blur(y, mu2)
+    # OpenCV filters uint8 frames with the same float32 arithmetic as their float32 copies (bit for
+    # bit), reading a quarter of the bytes.
+    as_u8 = [np.ascontiguousarray(v).reshape(shape) if v.dtype == np.uint8 and shape[2] <= 4 else None
+             for v in (ref, gen)]
+    blur(x if as_u8[0] is None else as_u8[0], ws.mu1)
+    blur(y if as_u8[1] is None else as_u8[1], ws.mu2)
     np.multiply(x, x, out=tmp)
-    blur(tmp, s11)
+    blur(tmp, ws.s11)
     np.multiply(y, y, out=tmp)
-    blur(tmp, s22)
+    blur(tmp, ws.s22)
     np.multiply(x, y, out=tmp)
-    blur(tmp, s12)
-    # Same operations, in the same order and precision, as pytorch_msssim._ssim.
-    c1 = np.float32((SSIM_K[0] * data_range) ** 2)
-    c2 = np.float32((SSIM_K[1] * data_range) ** 2)
-    m11, m22, m12 = x, y, tmp  # the inputs are no longer needed
-    np.multiply(mu1, mu1, out=m11)
-    np.multiply(mu2, mu2, out=m22)
-    np.multiply(mu1, mu2, out=m12)
-    s11 -= m11
-    s22 -= m22
-    s12 -= m12
-    # cs = (2 s12 + C2) / (s11 + s22 + C2)
-    s12 *= 2
-    s12 += c2
-    s11 += s22
-    s11 += c2
-    s12 /= s11
-    # luminance = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1)
-    m12 *= 2
-    m12 += c1
-    m11 += m22
-    m11 += c1
-    m12 /= m11
-    m12 *= s12
-    valid = m12[cy, cx]
-    per_channel = valid.reshape(-1, shape[2]).mean(axis=0, dtype=np.float64)
+    blur(tmp, ws.s12)
+    # Same operations, in the same order and float32 precision, as pytorch_msssim._ssim, on strips of
+    # the valid rows; each strip's map is summed in float64 by OpenCV (no copy of the strided interior).
+    c1_ = np.float32((SSIM_K[0] * data_range) ** 2)
+    c2_ = np.float32((SSIM_K[1] * data_range) ** 2)
+    total = np.zeros(max(4, channels))
+    for top in range(r0, r1, SSIM_STRIP_ROWS):
+        n = min(SSIM_STRIP_ROWS, r1 - top)
+        rows = slice(top, top + n)
+        mu1, mu2 = ws.mu1[rows], ws.mu2[rows]
+        s11, s22, s12 = ws.s11[rows], ws.s22[rows], ws.s12[rows]
+        m11, m22, m12, den = ws.m11[:n], ws.m22[:n], ws.m12[:n], ws.den[:n]
+        np.multiply(mu1, mu1, out=m11)
+        np.multiply(mu2, mu2, out=m22)
+        np.multiply(mu1, mu2, out=m12)
+        # cs = (2 (s12 - mu1 mu2) + C2) / ((s11 - mu1^2) + (s22 - mu2^2) + C2)
+        s12 -= m12
+        s12 *= 2
+        s12 += c2_
+        np.subtract(s11, m11, out=den)
+        s22 -= m22
+        den += s22
+        den += c2_
+        s12 /= den
+        # luminance = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1)
+        m12 *= 2
+        m12 += c1_
+        m11 += m22
+        m11 += c1_
+        m12 /= m11
+        m12 *= s12
+        valid = m12[:, c0:c1]
+        if channels <= 4:
+            total[:channels] += cv2.sumElems(valid)[:channels]
+        else:  # OpenCV's sum takes at most four channels
+            total += valid.reshape(-1, channels).sum(axis=0, dtype=np.float64)
+    per_channel = total[:channels] / float((r1 - r0) * (c1 - c0))
     return float(per_channel.mean())
+
+
+def ssim_workers(frames: int) -> int:
+    """Threads SSIM splits `frames` frames over: the cores this process may use, at most 4 and at most `frames`."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(4, cores, frames))
 
 
 def ssim(ref_rgb: np.ndarray, gen_rgb: np.ndarray, workers: int | None = None) -> MetricResult:
     """ref_rgb, gen_rgb: (T, H, W, 3) uint8. Returns mean SSIM (data range 255) over all frames and (T,) per frame."""
     _check_rgb(ref_rgb, gen_rgb)
-    workers = workers or min(4, os.cpu_count() or 1)
+    workers = workers or ssim_workers(ref_rgb.shape[0])
     frames = range(ref_rgb.shape[0])
     store = threading.local()  # one workspace per thread, freed when this call returns
 

@@ -74,23 +74,53 @@ def _check_depth_inputs(disparity: np.ndarray, depth_ref_m: np.ndarray) -> None:
                          "(T, H, W) with the same T; cut them to the common length first")
 
 
-def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray) -> DepthAlignment:
-    """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns the clip-level least-squares
-    (scale, shift) with scale * d + shift ~= 1/Z over pixels with finite d and Z in (0, 100) m."""
+def depth_validity(disparity: np.ndarray, depth_ref_m: np.ndarray) -> np.ndarray:
+    """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns (T, H, W) bool: the pixels the disparity
+    alignment and SI-MSE use, finite predicted disparity and reference depth in (0, 100) m. Computed once
+    per example and shared by both (``score_si_mse``, ``score_ate3d``)."""
     _check_depth_inputs(disparity, depth_ref_m)
     shape_hw = depth_ref_m.shape[1:]
+    out = np.empty(depth_ref_m.shape, bool)
+    tmp = np.empty(shape_hw, bool)
+    with np.errstate(invalid="ignore"):
+        for t in range(depth_ref_m.shape[0]):
+            z = depth_ref_m[t]
+            # 0 < z < 100 excludes NaN and +-inf, so no separate isfinite(z) is needed.
+            np.greater(z, 0, out=out[t])
+            out[t] &= np.less(z, MAX_VALID_DEPTH_M, out=tmp)
+            out[t] &= np.isfinite(disparity_frame(disparity, t, shape_hw), out=tmp)
+    return out
+
+
+def _valid_pairs(disparity: np.ndarray, depth_ref_m: np.ndarray, valid: np.ndarray | None, t: int):
+    """Frame t's valid pixels as float64 (disparity, reference depth), or None when there are none."""
+    d = disparity_frame(disparity, t, depth_ref_m.shape[1:])
+    z = depth_ref_m[t]
+    if valid is None:
+        keep = valid_reference_depth(z) & np.isfinite(d)
+    else:
+        keep = valid[t]
+    if not keep.any():
+        return None
+    return d[keep].astype(np.float64), z[keep].astype(np.float64)
+
+
+def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray,
+                            valid: np.ndarray | None = None) -> DepthAlignment:
+    """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns the clip-level least-squares
+    (scale, shift) with scale * d + shift ~= 1/Z over pixels with finite d and Z in (0, 100) m.
+    ``valid``: those pixels as (T, H, W) bool when already known (``depth_validity``)."""
+    _check_depth_inputs(disparity, depth_ref_m)
     # Shifted one-pass sums in float64: the pivot (first frame's means) removes cancellation.
     n = 0
     pivot_d = pivot_y = None
     s_d = s_y = s_dd = s_dy = 0.0
     for t in range(depth_ref_m.shape[0]):
-        d = disparity_frame(disparity, t, shape_hw)
-        z = depth_ref_m[t]
-        valid = valid_reference_depth(z) & np.isfinite(d)
-        if not valid.any():
+        pair = _valid_pairs(disparity, depth_ref_m, valid, t)
+        if pair is None:
             continue
-        dv = d[valid].astype(np.float64)
-        yv = 1.0 / z[valid].astype(np.float64)
+        dv, yv = pair
+        np.divide(1.0, yv, out=yv)
         if pivot_d is None:
             pivot_d, pivot_y = float(dv.mean()), float(yv.mean())
         dv -= pivot_d
@@ -100,8 +130,10 @@ def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray) -> D
         s_y += float(yv.sum())
         # numpy's pairwise sums, not BLAS dot products: BLAS splits long sums across its threads, so the
         # last bits would depend on the thread count (a Ray worker runs with one).
-        s_dd += float(np.sum(dv * dv))
-        s_dy += float(np.sum(dv * yv))
+        yv *= dv
+        s_dy += float(np.sum(yv))
+        dv *= dv
+        s_dd += float(np.sum(dv))
     if n == 0:
         log.warning("no pixel has both finite predicted disparity and valid reference depth; "
                     "depth metrics are undefined for this clip")
@@ -128,29 +160,38 @@ def aligned_depth(disparity_hw: np.ndarray, alignment: DepthAlignment) -> np.nda
 
 
 def si_mse(disparity: np.ndarray, depth_ref_m: np.ndarray,
-           alignment: DepthAlignment | None = None) -> MetricResult:
+           alignment: DepthAlignment | None = None, valid: np.ndarray | None = None) -> MetricResult:
     """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns the mean over frames with >= 1 valid
-    pixel of var(log Z^ - log Z) (mean of squares minus squared mean) and (T,) per-frame values."""
+    pixel of var(log Z^ - log Z) (mean of squares minus squared mean) and (T,) per-frame values.
+    ``valid``: (T, H, W) bool from ``depth_validity`` when already computed (shared with the alignment)."""
     _check_depth_inputs(disparity, depth_ref_m)
+    if valid is None:
+        valid = depth_validity(disparity, depth_ref_m)
     if alignment is None:
-        alignment = fit_disparity_alignment(disparity, depth_ref_m)
+        alignment = fit_disparity_alignment(disparity, depth_ref_m, valid=valid)
     t_len = depth_ref_m.shape[0]
     per_frame = np.full(t_len, np.nan)
     if alignment.n_pixels == 0:
         return MetricResult(float("nan"), per_frame)
     for t in range(t_len):
-        z = depth_ref_m[t]
-        d = disparity_frame(disparity, t, depth_ref_m.shape[1:])
-        valid = valid_reference_depth(z) & np.isfinite(d)
-        if not valid.any():
+        pair = _valid_pairs(disparity, depth_ref_m, valid, t)
+        if pair is None:
             continue
-        aligned = alignment.scale * d[valid].astype(np.float64) + alignment.shift
+        aligned, zv = pair
+        aligned *= alignment.scale
+        aligned += alignment.shift
         positive = aligned > 0  # where the aligned depth 1/aligned exists
-        if not positive.any():
+        n_positive = int(np.count_nonzero(positive))
+        if n_positive == 0:
             continue
+        if n_positive < aligned.size:
+            aligned, zv = aligned[positive], zv[positive]
         # log(Z^) - log(Z) = -log(aligned * Z)
-        delta = -np.log(aligned[positive] * z[valid][positive].astype(np.float64))
-        per_frame[t] = float(np.mean(delta * delta) - np.mean(delta) ** 2)
+        aligned *= zv
+        delta = np.log(aligned, out=aligned)
+        np.negative(delta, out=delta)
+        mean = np.mean(delta)
+        per_frame[t] = float(np.mean(np.square(delta, out=delta)) - mean ** 2)
     return MetricResult(finite_mean(per_frame), per_frame)
 
 
@@ -239,9 +280,15 @@ def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarr
 # -- registry adapters: compute(MetricInputs) -> MetricResult -----------------------------------------
 
 
+def _validity(x) -> np.ndarray:
+    """The (T, H, W) pixels with valid reference depth and finite disparity, shared by the fit and SI-MSE."""
+    return x.shared("depth_validity", lambda: depth_validity(x.gen_disparity, x.ref_depth_m))
+
+
 def _alignment(x) -> DepthAlignment:
     """The disparity-to-depth fit of one example, shared by ATE-3D and SI-MSE."""
-    return x.shared("disparity_alignment", lambda: fit_disparity_alignment(x.gen_disparity, x.ref_depth_m))
+    return x.shared("disparity_alignment",
+                    lambda: fit_disparity_alignment(x.gen_disparity, x.ref_depth_m, valid=_validity(x)))
 
 
 def score_ate3d(x) -> MetricResult:
@@ -252,4 +299,4 @@ def score_ate3d(x) -> MetricResult:
 
 
 def score_si_mse(x) -> MetricResult:
-    return si_mse(x.gen_disparity, x.ref_depth_m, alignment=_alignment(x))
+    return si_mse(x.gen_disparity, x.ref_depth_m, alignment=_alignment(x), valid=_validity(x))

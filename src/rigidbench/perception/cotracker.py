@@ -52,16 +52,16 @@ NETWORK_ITERS = 6  # refinement iterations the upstream predictor asks of its ne
 def load_cotracker(repo_dir: str | Path | None = None, checkpoint: str | Path | None = None, device: str = "cpu",
                    pretrained: bool = True, allow_download: bool = False):
     """CoTracker3 offline predictor in eval mode on ``device`` (float32). ``pretrained=False`` keeps the
-    hub entry's random initialisation (tests, benchmarks). Raises WeightsUnavailable when absent."""
-    import torch
-
-
+    hub entry's random initialisation (tests, benchmarks). Raises WeightsUnavailable when absent, before
+    importing torch."""
     repo = weights.locate("cotracker-code", repo_dir)
     if repo is None and not allow_download:
         raise WeightsUnavailable(weights.missing_message("cotracker-code", repo_dir))
     ckpt = weights.locate("cotracker", checkpoint) if pretrained else None
     if pretrained and ckpt is None and not allow_download:
         raise WeightsUnavailable(weights.missing_message("cotracker", checkpoint))
+    import torch
+
     explicit_ckpt = ckpt is not None and (checkpoint is not None
                                           or weights.env_path(weights.WEIGHTS["cotracker"]) is not None)
     # The hub entry fetches (or reads from the hub cache) its own checkpoint when pretrained=True.

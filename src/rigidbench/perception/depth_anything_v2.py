@@ -88,6 +88,10 @@ def load_depth_anything_v2(path: str | Path | None = None, device="cpu", dtype=N
             raise _unavailable(f"{where} (from {'the given path' if path is not None else '$' + DAV2_ENV})")
     else:
         checkpoint = hf_cached_file(DAV2_CHECKPOINT_REPO, DAV2_FILENAME, cache_dir)
+        if checkpoint is None and not allow_download and hf_cached_file(DAV2_MODEL, "config.json", cache_dir) is None:
+            # nothing local: say so before importing transformers
+            raise _unavailable(f"${DAV2_ENV} (unset) and the Hugging Face cache ({DAV2_MODEL}, "
+                               f"{DAV2_CHECKPOINT_REPO}/{DAV2_FILENAME})")
         try:
             model = _load_transformers(DAV2_MODEL, offline=not allow_download or checkpoint is not None,
                                        cache_dir=cache_dir)

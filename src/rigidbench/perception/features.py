@@ -79,8 +79,10 @@ def use_hub_position_interpolation(model):
 
 
 def load_dinov2(path: str | None = None, allow_download: bool = False):
-    """Returns the pretrained ``Dinov2Model`` (float32, CPU) from ``path``, $RIGIDBENCH_DINOV2 or the cache."""
-
+    """Returns the pretrained ``Dinov2Model`` (float32, CPU) from ``path``, $RIGIDBENCH_DINOV2 or the cache.
+    The weights are looked for before ``transformers`` is imported (5 s), so their absence costs nothing."""
+    if weights.locate("dinov2", path) is None and not allow_download:
+        raise WeightsUnavailable(weights.missing_message("dinov2", path))
     try:
         from transformers import Dinov2Model
     except ModuleNotFoundError:
@@ -98,14 +100,13 @@ def load_identity_features(device: str | None = None, path: str | None = None, a
     embeddings are resampled as torch-hub DINOv2 does. ``model`` may be a ready ``Dinov2Model``
     (tests pass a tiny one).
     """
+    if model is None:
+        model = load_dinov2(path, allow_download)  # raises before any import when the weights are absent
     import contextlib
 
     import torch
 
-
     device = resolve_device(device)
-    if model is None:
-        model = load_dinov2(path, allow_download)
     amp = inference_dtype("dinov2", device)
     model = use_hub_position_interpolation(model.to(device=device, dtype=torch.float32).eval())
     device_type = torch.device(device).type
@@ -151,15 +152,14 @@ def nets_key(lpips: bool, identity: bool) -> str:
 
 def load_lpips(allow_download: bool = False):
     """LPIPS-AlexNet with the lpips package's linear layers and the AlexNet backbone from $RIGIDBENCH_ALEXNET
-    or the torch hub cache; raises WeightsUnavailable naming what is missing."""
-    from ..metrics import lpips_net  # torch
-
+    or the torch hub cache; raises WeightsUnavailable naming what is missing (before importing torch)."""
     lin = weights.locate("lpips-lin")
     if lin is None:
         raise WeightsUnavailable(weights.missing_message("lpips-lin"))
     backbone = weights.locate("alexnet")
     if backbone is None and not allow_download:
         raise WeightsUnavailable(weights.missing_message("alexnet"))
+    from ..metrics import lpips_net  # torch
     try:
         return lpips_net.build_lpips_alex(backbone_weights=backbone, lin_weights=lin, allow_download=allow_download)
     except (OSError, KeyError, ValueError) as exc:
@@ -168,15 +168,22 @@ def load_lpips(allow_download: bool = False):
 
 def load_feature_nets(device: str | None = None, allow_download: bool = False) -> FeatureNets:
     """LPIPS-AlexNet and DINOv2-L identity features from local weights (see ``perception.weights``) on
-    ``device`` (None: CUDA when available); a network whose weights are absent is skipped with the reason."""
-    nets = FeatureNets(device=resolve_device(device))
+    ``device`` (None: CUDA when available); a network whose weights are absent is skipped with the reason.
+    Without any of the weights nothing heavy is imported (torch, transformers): the check comes first."""
+    nets = FeatureNets(device=str(device) if device is not None else "cpu")
+
+    def resolved() -> str:  # torch is imported only once a network is actually loaded
+        nets.device = resolve_device(device)
+        return nets.device
+
     try:
-        nets.lpips = load_lpips(allow_download).to(nets.device)
+        net = load_lpips(allow_download)
+        nets.lpips = net.to(resolved())
     except WeightsUnavailable as exc:
         nets.skipped["lpips"] = str(exc)
     try:
-        nets.identity = load_identity_features(device=nets.device, path=weights.locate("dinov2"),
-                                               allow_download=allow_download)
+        model = load_dinov2(weights.locate("dinov2"), allow_download)
+        nets.identity = load_identity_features(device=resolved(), model=model)
     except WeightsUnavailable as exc:
         nets.skipped["iddrift"] = str(exc)
     return nets

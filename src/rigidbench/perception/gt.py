@@ -127,6 +127,7 @@ class GroundTruthBackend:
 
     name = "gt"
     whole_clip = False  # needs the generated clip only up to the last reference time
+    cache = False  # recomputing from the world state costs less than writing and reading a cache
     version = "2"  # 2: Perception carries track confidences and background timestamps
 
     def perceive(self, sample, video, prediction_path: Path) -> Perception:

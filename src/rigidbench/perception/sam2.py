@@ -52,8 +52,10 @@ def hiera_large_config():
 def load_sam2(path: str | None = None, device: str = "cpu", dtype=None, allow_download: bool = False):
     """SAM 2.1 Hiera Large from ``path``, $RIGIDBENCH_SAM2 or the Hugging Face cache, in eval mode on
     ``device`` (``dtype`` default: float32 on CUDA and CPU, as the published runs' ``SAM2VideoPredictor``
-    ran with no autocast: weights, frames and activations float32). Raises WeightsUnavailable if absent."""
-
+    ran with no autocast: weights, frames and activations float32). Raises WeightsUnavailable if absent,
+    before importing ``transformers``."""
+    if weights.locate("sam2", path) is None and not allow_download:
+        raise WeightsUnavailable(weights.missing_message("sam2", path))
     try:
         from transformers import Sam2VideoModel
     except ModuleNotFoundError:

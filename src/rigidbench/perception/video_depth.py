@@ -140,10 +140,8 @@ def load_video_depth_anything(path: str | Path | None = None, device="cpu", dtyp
     """Video Depth Anything with the official weights, strict key match, eval mode on ``device``.
 
     ``dtype`` casts the weights (default: keep float32; ``video_disparity`` autocasts on CUDA).
-    Raises WeightsUnavailable naming where it looked and how to fetch the file.
+    Raises WeightsUnavailable naming where it looked and how to fetch the file (before importing torch).
     """
-    import torch
-
     weights = find_vda_weights(path, cache_dir)
     if weights is None and allow_download and path is None and not os.environ.get(VDA_ENV):
         weights = _download(cache_dir)
@@ -154,6 +152,8 @@ def load_video_depth_anything(path: str | Path | None = None, device="cpu", dtyp
             f"`rigidbench weights --download vda` on a machine with network access, or download the file and set "
             f"{VDA_ENV} to it (or to its folder).")
     log.info("loading Video Depth Anything (%s) from %s", encoder, weights)
+    import torch
+
     state = torch.load(weights, map_location="cpu", weights_only=True)
     if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
         raise ValueError(f"{weights} wraps its weights in a training checkpoint; save model.state_dict() instead")

@@ -86,9 +86,15 @@ def hf_cache_dir() -> Path:
 
 
 def torch_hub_dir() -> Path:
-    import torch
+    """torch.hub.get_dir(), without importing torch when it is not loaded yet (checking for weights
+    must cost nothing: an evaluation without them never imports the network's library)."""
+    import sys
 
-    return Path(torch.hub.get_dir())
+    if "torch" in sys.modules:  # honours torch.hub.set_dir
+        return Path(sys.modules["torch"].hub.get_dir())
+    # torch's own rule (torch/hub.py, _get_torch_home): $TORCH_HOME, else $XDG_CACHE_HOME/torch, then /hub
+    home = os.environ.get("TORCH_HOME") or os.path.join(os.environ.get("XDG_CACHE_HOME", "~/.cache"), "torch")
+    return Path(os.path.expanduser(home)) / "hub"
 
 
 def _hf_cached_file(repo_id: str, filename: str) -> Path | None:

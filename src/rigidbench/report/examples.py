@@ -33,6 +33,7 @@ import numpy as np
 from rigidbench.errors import RigidBenchError
 from rigidbench.groundtruth.bundle import Sample
 from rigidbench.metrics import METRICS
+from rigidbench.perception.base import packed_frames
 from rigidbench.report.analysis import ReportData
 from rigidbench.report.load import RunInfo
 from rigidbench.video import VIDEO_EXTENSIONS, write_video
@@ -167,6 +168,9 @@ def npz_frames(path: Path, key: str, indices) -> dict[int, np.ndarray]:
     from numpy.lib import format as npformat
 
     wanted = sorted({int(i) for i in indices})
+    packed = packed_frames(path, key, wanted)  # the perception cache stores bool masks bit-packed per frame
+    if packed is not None:
+        return packed
     out: dict[int, np.ndarray] = {}
     with zipfile.ZipFile(path) as archive, archive.open(f"{key}.npy") as fh:
         version = npformat.read_magic(fh)
