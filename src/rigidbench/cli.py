@@ -467,8 +467,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_lazy("rigidbench.perception.weights:cmd_weights"))
     p = sub.add_parser("demo", help="the whole loop on this machine: render, predict, evaluate (CPU, minutes)")
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output directory (default demo_out)")
-    p.add_argument("--quality", choices=("preview", "test"), default="preview",
-                   help="render preset for the reference clips (default preview: 320x176, 49 frames)")
+    p.add_argument("--quality", choices=("demo", "preview", "test"), default="demo",
+                   help="render preset for the reference clips (default demo: the preview clip, 320x176, 49 frames, "
+                        "at 4 samples denoised; preview: 8 samples)")
     p.add_argument("--severity", type=float, default=0.5, help="severity of every failure mode, in [0, 1]")
     p.add_argument("--perception", choices=("gt", "neural"), default="gt",
                    help="gt: exact world state (no networks); neural: SAM 2.1, CoTracker3, Video Depth Anything")

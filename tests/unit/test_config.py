@@ -20,7 +20,9 @@ def test_registry_counts_and_partitions():
     reg = load_registry()
     assert len(reg.objects) == 24 and len(reg.scenes) == 12 and len(reg.tasks) == 5
     assert sorted(reg.materials) == ["dark_wood", "light_wood", "polished_white_marble", "rough_grey_concrete"]
-    assert set(reg.presets) == {"paper", "preview", "test"}
+    assert set(reg.presets) == {"paper", "preview", "demo", "test"}
+    demo, preview = reg.presets["demo"], reg.presets["preview"]  # the demo's preset: preview at half the samples
+    assert demo.samples == 4 and demo.denoise and (demo.resolution, demo.frames) == (preview.resolution, preview.frames)
     assert reg.presets["paper"].resolution == (1280, 704) and reg.presets["paper"].samples == 32
     assert reg.presets["paper"].adaptive_threshold == 0.05 and reg.presets["paper"].frames == 49
     assert reg.presets["preview"].resolution == (320, 176) and reg.presets["preview"].samples == 8

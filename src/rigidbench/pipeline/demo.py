@@ -2,7 +2,7 @@
 failure modes, score them, write the report and print the model x metric table.
 
 Everything runs on this machine's CPU with no network: the reference clips are rendered at the
-`preview` preset, the failure modes make their predictions from them (image-space ones in
+`demo` preset (the `preview` clip at half its samples), the failure modes make their predictions from them (image-space ones in
 milliseconds, physics counterfactuals by re-simulating and re-rendering), and `gt` perception
 scores them exactly. Measurements whose networks are not available locally are skipped and the
 reason is printed.
@@ -52,7 +52,7 @@ def _stage(number: int, total: int, text: str, started: float) -> None:
     print(f"[{number}/{total}] {text}  ({time.time() - started:.0f} s elapsed)", flush=True)
 
 
-def run_demo(out_dir: Path, quality: str = "preview", severity: float = 0.5, perception: str = "gt",
+def run_demo(out_dir: Path, quality: str = "demo", severity: float = 0.5, perception: str = "gt",
              modes: Sequence[str] = DEMO_MODES, report: bool = True, resamples: int = 20000,
              ctx: RunContext | None = None) -> int:
     """Render, predict, evaluate and report; returns the process exit status."""
