@@ -23,12 +23,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
+from .atomic import write_text
 from .errors import BundleError
+from .folders import BundleFolder
 from .groundtruth.layout import (SAMPLE_WHAT, PublishedLayoutError, check_not_published_layout,  # noqa: F401
                                  find_published_layout, is_published_metadata, published_layout_message,
                                  sample_dirs)
@@ -55,8 +56,6 @@ INPUTS_FILE = "inputs.jsonl"
 DEFAULT_FPS = 24.0
 DEFAULT_FRAMES = 49
 DEFAULT_RESOLUTION = (1280, 704)
-
-_FIRST_FRAME = Path("frames") / "00000.png"
 
 
 def full_prompt(task_prompt: str) -> str:
@@ -134,7 +133,8 @@ def _reference_facts(meta: dict, meta_path: Path) -> tuple[float, int, tuple[int
 
 
 def _load_example(sample_dir: Path) -> Example:
-    meta_path = sample_dir / "metadata.json"
+    bundle = BundleFolder(sample_dir)
+    meta_path = bundle.metadata
     try:
         meta = json.loads(meta_path.read_text())
     except (OSError, ValueError) as exc:
@@ -142,11 +142,11 @@ def _load_example(sample_dir: Path) -> Example:
     if is_published_metadata(meta):
         raise PublishedLayoutError(published_layout_message(sample_dir.parent, SAMPLE_WHAT))
     prompt = meta.get("prompt")
-    if prompt is None and (sample_dir / "prompt.txt").is_file():
-        prompt = (sample_dir / "prompt.txt").read_text().strip()
+    if prompt is None and bundle.prompt.is_file():
+        prompt = bundle.prompt.read_text().strip()
     if not prompt or "task" not in meta:
         raise BundleError(f"{meta_path}: no prompt or task; re-render or re-import example {sample_dir.name}")
-    image = sample_dir / _FIRST_FRAME
+    image = bundle.frame(0)
     if not image.exists():
         raise FileNotFoundError(f"{image}: the first frame of example {sample_dir.name} is missing; "
                                 "re-render (or re-import) this example")
@@ -207,14 +207,4 @@ def write_inputs(data_dir: str | Path, out: str | Path | None = None) -> Path:
     out = Path(out) if out else Path(data_dir) / INPUTS_FILE
     out.parent.mkdir(parents=True, exist_ok=True)
     text = "".join(json.dumps(ex.to_dict(relative_to=out.parent), ensure_ascii=False) + "\n" for ex in bench)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; inputs.jsonl is for any model runner
-        tmp.replace(out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return out
+    return write_text(out, text, encoding="utf-8", unique=True, mode=0o644)  # for any model runner

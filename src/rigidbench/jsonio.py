@@ -5,10 +5,10 @@ path (the last rename wins, and each rename is of a complete file)."""
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
+
+from .atomic import write_text
 
 
 def write_json(path: str | Path, doc: Any, *, durable: bool = False, **dumps: Any) -> Path:
@@ -17,16 +17,5 @@ def write_json(path: str | Path, doc: Any, *, durable: bool = False, **dumps: An
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(doc, **{"indent": 1, **dumps}) + "\n"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-            if durable:
-                fh.flush()
-                os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes the file private to its owner; outputs are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    # unique: several writers may write one path; mode: outputs are meant to be shared
+    return write_text(path, text, unique=True, mode=0o644, durable=durable)

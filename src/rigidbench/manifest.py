@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import write_text
 from .config import ConfigError, Registry
 
 SPLITS = ("train", "eval")
@@ -139,10 +140,7 @@ def write(path: str | Path, manifest_rows: list[ManifestRow]) -> Path:
     """Write rows as JSON Lines (atomically)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text("".join(json.dumps(r.to_dict()) + "\n" for r in manifest_rows))
-    tmp.replace(path)
-    return path
+    return write_text(path, "".join(json.dumps(r.to_dict()) + "\n" for r in manifest_rows))
 
 
 def read(path: str | Path) -> list[ManifestRow]:

@@ -20,8 +20,8 @@ import numpy as np
 from rigidbench.benchmark import find_published_layout, is_published_metadata, published_layout_message
 from rigidbench.firstframe import (MISMATCH_KIND, check_first_frame, mismatch_message, read_first_frame,
                                    read_reference_first_frame)
+from rigidbench.folders import GENERATION_FILE, STATE_SUFFIX
 from rigidbench.groundtruth.bundle import check_bundle, repair_hint
-from rigidbench.perception.gt import STATE_SUFFIX
 from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, VIDEO_EXTENSIONS, VideoError,
                               VideoInfo, aligned_length, check_decodable, probe_video, reference_times)
 
@@ -29,7 +29,7 @@ ERROR = "error"
 WARNING = "warning"
 
 #: Files `rigidbench predict` writes into a predictions directory besides the videos.
-RUN_FILES = frozenset({"generation.json"})
+RUN_FILES = frozenset({GENERATION_FILE})
 #: Relative aspect-ratio difference above which resizing visibly distorts the clip.
 ASPECT_TOLERANCE = 0.02
 #: Relative disagreement between header and timestamp frame rates reported as a warning.

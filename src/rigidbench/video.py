@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -24,7 +22,9 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from .atomic import atomic_file
 from .errors import VideoError
+from .folders import MAX_VIDEO_BYTES, VIDEO_EXTENSIONS, check_video_file  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -45,11 +45,8 @@ TIME_TOLERANCE_S = 1e-6
 #: neither refused by one nor cut short by the other.
 COVERAGE_TOLERANCE_S = 0.5 / REFERENCE_FPS
 
-#: Largest prediction file read (bytes); a bigger one is refused before it is hashed or decoded.
-MAX_VIDEO_BYTES = 2 * 1024 ** 3
-
-#: Extensions read as videos (anything FFmpeg demuxes works; these are the ones we look for).
-VIDEO_EXTENSIONS = (".mp4", ".webm", ".mov", ".mkv", ".avi", ".gif")
+# MAX_VIDEO_BYTES (largest prediction file read; a bigger one is refused before it is hashed or decoded),
+# VIDEO_EXTENSIONS (extensions read as videos) and check_video_file live with the predictions folder.
 
 _FORMAT_BY_SUFFIX = {".mp4": "mp4", ".mov": "mov", ".mkv": "matroska", ".webm": "webm"}
 
@@ -390,34 +387,6 @@ def _nominal_fps(stream) -> float | None:
     return None
 
 
-def check_video_file(path: str | Path, max_bytes: int = MAX_VIDEO_BYTES, what: str = "video file") -> int:
-    """path: a video file to read (a symbolic link to one is fine). Returns its size in bytes; raises
-    VideoError, without reading it, for anything but a regular file (a FIFO, a device such as /dev/zero, a
-    directory, a socket), an empty file, or one over ``max_bytes`` (MAX_VIDEO_BYTES), any of which could
-    otherwise block or exhaust a reader."""
-    import stat
-
-    path = Path(path)
-    try:
-        st = path.stat()  # follows symbolic links: what would be read
-    except FileNotFoundError:
-        raise VideoError(path, "file not found (or a broken symbolic link)") from None
-    except OSError as exc:
-        raise VideoError(path, f"cannot be read ({exc.strerror or exc})") from None
-    if not stat.S_ISREG(st.st_mode):
-        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a character device" if
-                stat.S_ISCHR(st.st_mode) else "a block device" if stat.S_ISBLK(st.st_mode) else "a directory"
-                if stat.S_ISDIR(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
-        target = f" (a link to {os.path.realpath(path)})" if path.is_symlink() else ""
-        raise VideoError(path, f"is {kind}{target}, not a regular {what}; only regular files are read")
-    if st.st_size == 0:
-        raise VideoError(path, "file is empty (0 bytes)")
-    if st.st_size > max_bytes:
-        raise VideoError(path, f"is {st.st_size / 1e9:.2f} GB, over the {max_bytes / 1e9:.2f} GB limit for one "
-                               f"{what} (MAX_VIDEO_BYTES); re-encode it (a 2-second clip needs far less)")
-    return int(st.st_size)
-
-
 def _open(path: Path):
     """Opens a container with PyAV; raises VideoError for a missing, unreadable or non-regular file."""
     import av
@@ -657,10 +626,8 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float = REFERENCE_FPS
             raise ValueError(f"{path}: times_s must be (T,) strictly increasing, got shape {times_s.shape}")
     codec_name = "libvpx-vp9" if suffix == ".webm" else ("libx264rgb" if lossless else "libx264")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{suffix}")
-    os.close(fd)
-    try:
-        with av.open(tmp_name, mode="w", format=_FORMAT_BY_SUFFIX[suffix]) as container:
+    with atomic_file(path, suffix=suffix, unique=True) as tmp_name:
+        with av.open(str(tmp_name), mode="w", format=_FORMAT_BY_SUFFIX[suffix]) as container:
             stream = container.add_stream(codec_name, rate=Fraction(fps).limit_denominator(100_000))
             stream.width, stream.height = width, height
             stream.pix_fmt = "rgb24" if codec_name == "libx264rgb" else "yuv420p"
@@ -678,10 +645,6 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float = REFERENCE_FPS
                     video_frame.time_base = time_base
                 container.mux(stream.encode(video_frame))
             container.mux(stream.encode(None))
-        os.replace(tmp_name, path)
-    finally:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
     return path
 
 

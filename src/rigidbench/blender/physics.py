@@ -32,9 +32,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,10 +42,12 @@ import numpy as np
 from ..assets.collision import MAX_HULL_VERTICES, hull_mesh
 from ..assets.objects import object_vertices
 from ..assets.standin import Mesh, box, ramp_mesh
+from ..atomic import atomic_dir
 from ..config import Registry, registry as load_registry
 from ..errors import SpecError
 from ..groundtruth.contacts import contact_pairs, convex_hull, detect_contacts
 from ..groundtruth.trajectory import Contact, Trajectory, save_contacts
+from ..rotations import quat_about_z
 from ..spec.types import Body, BodyPhysics, SceneSpec
 from .session import import_bpy, link_object, reset_scene
 
@@ -116,10 +115,6 @@ def body_mesh(body: Body, registry: Registry) -> Mesh:
     return _HULLS[key]
 
 
-def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:
-    return (math.cos(angle_rad / 2), 0.0, 0.0, math.sin(angle_rad / 2))
-
-
 def support_body(spec: SceneSpec) -> SceneBody:
     """The support as a passive box whose top face is centred at ``spec.support.centre_m``."""
     s = spec.support
@@ -127,7 +122,7 @@ def support_body(spec: SceneSpec) -> SceneBody:
     return SceneBody(name=SUPPORT_NAME, role="passive", kind="support",
                      mesh=box().fitted((s.size_m[0], s.size_m[1], SUPPORT_THICKNESS_M)),
                      position_m=(cx, cy, cz - SUPPORT_THICKNESS_M / 2),
-                     quat_wxyz=_quat_z(math.radians(s.long_axis_deg)), physics=s.physics,
+                     quat_wxyz=quat_about_z(math.radians(s.long_axis_deg)), physics=s.physics,
                      collision_shape="MESH", margin_m=spec.sim.passive_margin_m)
 
 
@@ -307,23 +302,10 @@ def write_simulation(out_dir: str | Path, spec: SceneSpec, result: SimulationRes
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: already exists; remove it or pass overwrite=True")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    done = False
-    try:
+    with atomic_dir(out, unique=True, replace=True) as tmp:
         (tmp / SCENE_SPEC_FILE).write_text(spec.to_json())
         result.trajectory.save(tmp / TRAJECTORIES_FILE)
         save_contacts(tmp / CONTACTS_FILE, result.contacts, frames=result.frames, tolerance_m=result.tolerance_m)
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{os.getpid()}")
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(out)
-        done = True
-    finally:
-        if not done:
-            shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 

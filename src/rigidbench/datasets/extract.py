@@ -21,6 +21,7 @@ import zlib
 from pathlib import Path, PurePosixPath
 from typing import Callable, Sequence
 
+from ..atomic import atomic_dir
 from ..errors import RigidBenchError
 
 log = logging.getLogger(__name__)
@@ -115,17 +116,11 @@ def safe_extract(paths: Sequence[str | Path], dest: str | Path, *, archive: str 
     archive = archive or Path(paths[0]).name
     if dest.exists():
         raise ArchiveError(f"{dest}: already exists; remove it to extract {archive} again")
-    tmp = dest.with_name(dest.name + ".tmp")
+    tmp = dest.with_name(dest.name + ".tmp")  # the name download's free-space check and cleanup know
     if tmp.exists():
         log.info("removing %s left by an interrupted extraction", tmp)
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    try:
-        _extract_members(paths, tmp, archive, on_read)
-    except ArchiveError:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    os.replace(tmp, dest)
+    with atomic_dir(dest, tmp=tmp) as root:
+        _extract_members(paths, root, archive, on_read)
     return dest
 
 

@@ -44,10 +44,10 @@ from .. import __version__
 from ..errors import EXAMPLE_ERRORS, BundleError, UserError
 from ..groundtruth import bundle as B
 from ..groundtruth import camera_model as cm
-from ..groundtruth.contacts import quat_to_matrix
 from ..groundtruth.layout import is_published_metadata
 from ..groundtruth.tracks import DEPTH_TOLERANCE, POINTS_PER_ACTOR, TRACK_RULES, ground_truth_tracks
 from ..groundtruth.trajectory import Trajectory
+from ..rotations import quat_to_matrix
 from ..video import VideoError, probe_video, read_video, write_video
 
 log = logging.getLogger(__name__)

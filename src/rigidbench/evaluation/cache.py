@@ -6,13 +6,14 @@ import hashlib
 import json
 from pathlib import Path
 
+from ..folders import DEPTH_FILE, MASKS_FILE, METADATA_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE
 from ..jsonio import write_json as _write
 
 # 2: ATE-3D against the simulated actor positions (the paper's target); 3: records hold the clip's coverage
 # of the reference span, and the reference key leaves out metadata that does not move scores
 SCORE_VERSION = "3"
 
-REFERENCE_FILES = ("metadata.json", "masks.npz", "depth.npz", "tracks.npz", "trajectories.npz", "video.mp4")
+REFERENCE_FILES = (METADATA_FILE, MASKS_FILE, DEPTH_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE)
 
 #: metadata.json fields that record how a bundle was made, not what it holds: a re-render that changes
 #: only these (its timings, package versions) keeps every cached score.
@@ -50,7 +51,7 @@ def reference_hash(sample_dir: Path) -> str:
         if not path.exists():
             digest.update(b"missing")
         else:
-            digest.update((metadata_hash(path) if name == "metadata.json" else file_hash(path)).encode())
+            digest.update((metadata_hash(path) if name == METADATA_FILE else file_hash(path)).encode())
     return digest.hexdigest()
 
 

@@ -12,16 +12,16 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..atomic import atomic_file
 from ..errors import EXAMPLE_ERRORS, EvaluationError, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..firstframe import check_first_frame, mismatch_message
+from ..folders import RunFolder, find_prediction, state_path
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity
 from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
 from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
-from ..perception.gt import state_path
-from ..video import (VIDEO_EXTENSIONS, align_video, aligned_length, check_video_file, read_video, reference_times,
-                     resize_frames)
+from ..video import align_video, aligned_length, read_video, reference_times, resize_frames
 from ..readouts.records import aggregate_readouts, example_readouts
 from .aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
 from .cache import file_hash, input_key, reference_hash, write_json
@@ -41,23 +41,6 @@ class EvaluationSummary:
     skipped_metrics: dict[str, str]
     official: bool
     results: dict
-
-
-def find_prediction(pred_dir: Path, sample_id: str) -> Path | None:
-    """pred_dir/<id>.<ext> for the one video extension present (several: EvaluationError). The file is
-    checked before anything reads it: a regular file (or a link to one) of at most MAX_VIDEO_BYTES, else
-    VideoError (a FIFO or a link to /dev/zero would block the hash for ever)."""
-    found = [pred_dir / f"{sample_id}{ext}" for ext in VIDEO_EXTENSIONS
-             if (pred_dir / f"{sample_id}{ext}").exists() or (pred_dir / f"{sample_id}{ext}").is_symlink()]
-    if len(found) > 1:
-        raise EvaluationError(f"{sample_id}: several predictions ({', '.join(p.name for p in found)}); keep one")
-    if not found:
-        return None
-    check_video_file(found[0])
-    state = state_path(found[0])
-    if state.exists() or state.is_symlink():
-        check_video_file(state, what="world-state file")
-    return found[0]
 
 
 def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
@@ -127,8 +110,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     if local and nets is None:
         nets = load_feature_nets(device)
     nets_key = nets.key if nets is not None else feature_nets_key()
-    (out_dir / "examples").mkdir(parents=True, exist_ok=True)
-    (out_dir / "cache").mkdir(exist_ok=True)
+    run_folder = RunFolder(out_dir)
+    run_folder.examples_dir.mkdir(parents=True, exist_ok=True)
+    run_folder.cache_dir.mkdir(exist_ok=True)
     started = time.time()
     evaluated, reused, failed, records = [], [], {}, []
     timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
@@ -150,7 +134,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
         pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
         key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}|protocol:{rules.name}", nets_key,
                         metrics)
-        record_path = out_dir / "examples" / f"{sample_id}.json"
+        record_path = run_folder.record(sample_id)
         old = previous_record(record_path)
         if old.get("input_key") == key and old.get("coverage", {}).get("short") and not allow_short:
             failed[sample_id] = short_clip_message(pred, old["coverage"], old["coverage"].get("fps", 24.0))
@@ -201,11 +185,11 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     if not official:
         results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics,
                                                        coverage["short"])
-    write_json(out_dir / "results.json", results)
+    write_json(run_folder.results, results)
     feature_nets = nets if nets is not None else FeatureNets(skipped={m: skipped[m] for m in skipped})
     info = run_info(model, pred_dir, data_dir, backend, feature_nets, metrics, pred_hashes, ref_hashes, timings,
                     time.time() - started, evaluated, reused, failed)
-    write_json(out_dir / "run.json", {**info, "protocol": rules.facts(), "dataset": results["dataset"]})
+    write_json(run_folder.run, {**info, "protocol": rules.facts(), "dataset": results["dataset"]})
     return EvaluationSummary(out_dir, evaluated, reused, failed, skipped, official, results)
 
 
@@ -245,7 +229,7 @@ class EvaluateWorker:
         self.model = job["model"]
         self.backend = backend or ready_backend(job["perception"], job.get("perception_options"))
         if hasattr(self.backend, "use_cache_dir"):
-            self.backend.use_cache_dir(self.out_dir / "cache" / self.backend.name)
+            self.backend.use_cache_dir(RunFolder(self.out_dir).cache_dir / self.backend.name)
         self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
         self.protocol = get_protocol(job.get("protocol"))
         self.first_frame_check = bool(job.get("first_frame_check", True))
@@ -302,14 +286,15 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     video.frames = protocol.prepare(video.frames)
     timings["decode_s"] += time.time() - t0
     t0 = time.time()
-    cache = out_dir / "cache" / f"{sample_id}-{backend.name}-{key[:16]}.npz"
+    run_folder = RunFolder(out_dir)
+    cache = run_folder.cache_dir / f"{sample_id}-{backend.name}-{key[:16]}.npz"
     if not getattr(backend, "cache", True):  # cheaper to recompute than to store (gt)
         perceived = backend.perceive(sample, video, pred)
     elif cache.exists():
         perceived = Perception.load(cache)
     else:
         perceived = backend.perceive(sample, video, pred)
-        for old_cache in (out_dir / "cache").glob(f"{sample_id}-{backend.name}-*.npz"):
+        for old_cache in run_folder.cache_dir.glob(f"{sample_id}-{backend.name}-*.npz"):
             old_cache.unlink()
         perceived.save(cache)
     timings["perception_s"] += time.time() - t0
@@ -327,8 +312,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     record["readouts"] = example_readouts(sample, metric_inputs(sample, gen_rgb, aligned, nets), scores, out_dir)
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
-    tmp = out_dir / "examples" / f"{sample_id}.tmp.npz"
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(out_dir / "examples" / f"{sample_id}.npz")
-    write_json(out_dir / "examples" / f"{sample_id}.json", record)
+    with atomic_file(run_folder.arrays(sample_id), suffix=".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+    write_json(run_folder.record(sample_id), record)
     return record

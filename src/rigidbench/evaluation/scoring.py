@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..groundtruth.contacts import quat_to_matrix
 from ..metrics import METRICS, MetricInputs
+from ..rotations import quat_to_matrix
 
 
 def metric_inputs(sample, gen_rgb: np.ndarray, perception, nets) -> MetricInputs:

@@ -35,6 +35,8 @@ import numpy as np
 
 from .. import jsonio
 from ..errors import BundleError
+from ..folders import (BUNDLE_FILES, CONTACTS_FILE, DEPTH_FILE, FRAMES_DIR, MASKS_FILE,  # noqa: F401 (re-exported)
+                       METADATA_FILE, PROMPT_FILE, SPEC_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE, frame_name)
 from ..spec.types import SceneSpec
 from ..video import VideoError, probe_video
 from . import camera_model as cm
@@ -44,18 +46,6 @@ from .trajectory import Contact, Trajectory, load_contacts
 from .tracks import Tracks
 
 BUNDLE_VERSION = 1
-FRAMES_DIR = "frames"
-VIDEO_FILE = "video.mp4"
-MASKS_FILE = "masks.npz"
-DEPTH_FILE = "depth.npz"
-TRAJECTORIES_FILE = "trajectories.npz"
-CONTACTS_FILE = "contacts.json"
-TRACKS_FILE = "tracks.npz"
-METADATA_FILE = "metadata.json"
-PROMPT_FILE = "prompt.txt"
-SPEC_FILE = "scene_spec.json"
-BUNDLE_FILES = (VIDEO_FILE, MASKS_FILE, DEPTH_FILE, TRAJECTORIES_FILE, CONTACTS_FILE, TRACKS_FILE, METADATA_FILE,
-                PROMPT_FILE, SPEC_FILE)
 PIXEL_CONVENTION = "pixel (x, y) = (column, row) with integer values at pixel centres; the image spans [-0.5, W-0.5]"
 DEPTH_CONVENTION = "Cycles Z pass: metres along the camera's optical axis; +inf where no surface is hit"
 
@@ -73,11 +63,6 @@ def refuse_imported(bundle_dirs_: list[Path], what: str) -> None:
         raise BundleError(f"{what}, which needs each example's scene spec; {len(imported)} of the selected examples "
                           f"(e.g. {imported[0]}) were imported from the published set, which ships none. Use bundles "
                           "rendered with `rigidbench render` for this")
-
-
-def frame_name(k: int) -> str:
-    """File name of frame ``k`` (0-based) inside ``frames/``."""
-    return f"{k:05d}.png"
 
 
 # -- writing -------------------------------------------------------------------------------------

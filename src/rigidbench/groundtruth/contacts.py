@@ -41,6 +41,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..rotations import quat_to_matrix  # re-exported: tests and callers import it from here
 from .trajectory import Contact
 
 PLANE_MERGE_DECIMALS = 6  # normals/offsets equal to this many decimals are one plane
@@ -82,18 +83,6 @@ def convex_hull(vertices: np.ndarray) -> Hull:
     hv = pts[hull.vertices]
     return Hull(vertices=hv, normals=normals[first], offsets=offsets[first], lower_m=hv.min(0), upper_m=hv.max(0),
                 radius_m=float(np.linalg.norm(hv, axis=1).max()))
-
-
-def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
-    """q_wxyz: (...,4) unit quaternions -> (...,3,3) rotation matrices."""
-    q = np.asarray(q_wxyz, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
 
 
 def farthest_points(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:

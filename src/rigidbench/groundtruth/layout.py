@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from ..errors import BundleError
+from ..folders import METADATA_FILE
 
 
 class PublishedLayoutError(BundleError):
@@ -35,7 +36,7 @@ def sample_dirs(folder: Path) -> Iterator[Path]:
     except OSError:
         return
     for entry in entries:
-        if entry.is_dir() and not entry.name.startswith(".") and (entry / "metadata.json").is_file():
+        if entry.is_dir() and not entry.name.startswith(".") and (entry / METADATA_FILE).is_file():
             yield entry
 
 
@@ -45,7 +46,7 @@ def _holds_published_samples(folder: Path, probe: int = 3) -> bool:
         if k >= probe:
             break
         try:
-            meta = json.loads((sample_dir / "metadata.json").read_text())
+            meta = json.loads((sample_dir / METADATA_FILE).read_text())
         except (OSError, ValueError):
             continue
         if is_published_metadata(meta):

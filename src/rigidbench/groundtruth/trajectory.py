@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..rotations import quat_conjugate, quat_continuous, quat_log_vec, quat_mul
+
 
 @dataclass
 class Trajectory:
@@ -69,32 +71,6 @@ def finite_difference(x: np.ndarray, dt: float) -> np.ndarray:
     return np.gradient(x, dt, axis=1)
 
 
-def quat_continuous(q: np.ndarray) -> np.ndarray:
-    """Flip signs so consecutive quaternions lie in the same hemisphere. q: (N,T,4)."""
-    q = q.copy()
-    for t in range(1, q.shape[1]):
-        flip = np.sum(q[:, t] * q[:, t - 1], axis=-1) < 0
-        q[flip, t] *= -1
-    return q
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], axis=-1)
-
-
-def _quat_log_vec(q: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle) of unit quaternions (...,4)."""
-    q = np.where(q[..., :1] < 0, -q, q)
-    v = q[..., 1:]
-    s = np.linalg.norm(v, axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., :1])
-    scale = np.where(s > 1e-12, angle / np.maximum(s, 1e-300), 2.0)
-    return v * scale
-
-
 def angular_velocity(q: np.ndarray, dt: float) -> np.ndarray:
     """World-frame angular velocity (N,T,3) rad/s from quaternions (N,T,4) by finite differences.
 
@@ -104,11 +80,11 @@ def angular_velocity(q: np.ndarray, dt: float) -> np.ndarray:
     out = np.zeros((n, t, 3))
     if t < 2:
         return out
-    conj = q * np.array([1.0, -1.0, -1.0, -1.0])
+    conj = quat_conjugate(q)
     if t > 2:
-        out[:, 1:-1] = _quat_log_vec(_quat_mul(q[:, 2:], conj[:, :-2])) / (2 * dt)
-    out[:, 0] = _quat_log_vec(_quat_mul(q[:, 1], conj[:, 0])) / dt
-    out[:, -1] = _quat_log_vec(_quat_mul(q[:, -1], conj[:, -2])) / dt
+        out[:, 1:-1] = quat_log_vec(quat_mul(q[:, 2:], conj[:, :-2])) / (2 * dt)
+    out[:, 0] = quat_log_vec(quat_mul(q[:, 1], conj[:, 0])) / dt
+    out[:, -1] = quat_log_vec(quat_mul(q[:, -1], conj[:, -2])) / dt
     return out
 
 

@@ -16,10 +16,10 @@ import numpy as np
 
 from .. import __version__
 from ..config import RenderPreset
+from ..rotations import quat_to_matrix
 from ..video import write_video
 from . import bundle as B
 from .camera_model import camera_pose, intrinsics, project
-from .contacts import quat_to_matrix
 from .tracks import DEPTH_TOLERANCE, POINTS_PER_ACTOR, RENDER_TRACK_RULE, TRACK_RULES, ground_truth_tracks
 from .trajectory import save_contacts
 

@@ -23,6 +23,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..atomic import atomic_file
 from ..errors import PerceptionError
 from ..registry import LazyRegistry
 from ..video import aligned_length, interpolate_linear, interpolate_nearest
@@ -41,7 +42,6 @@ def save_arrays(obj, path: str | Path, compress: bool = True) -> None:
     float16 disparity would move SI-MSE and ATE-3D, so numbers keep their dtype: cached and recomputed
     scores are identical."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp.npz")
     arrays = {}
     for f in fields(obj):
         value = np.asarray(getattr(obj, f.name))
@@ -51,8 +51,8 @@ def save_arrays(obj, path: str | Path, compress: bool = True) -> None:
             arrays[_SHAPE + f.name] = np.asarray(value.shape, np.int64)
         else:
             arrays[f.name] = value
-    (np.savez_compressed if compress else np.savez)(tmp, **arrays)
-    tmp.replace(path)
+    with atomic_file(path, suffix=".npz") as tmp:
+        (np.savez_compressed if compress else np.savez)(tmp, **arrays)
 
 
 def load_arrays(cls, path: str | Path):

@@ -29,10 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..folders import STATE_SUFFIX, state_path  # noqa: F401 (re-exported: the state file beside a video)
 from ..metrics.background import detect_background_corners
 from .base import Perception, PerceptionError, load_arrays, save_arrays
-
-STATE_SUFFIX = ".state.npz"
 
 
 @dataclass
@@ -55,11 +54,6 @@ class WorldState:
         except (OSError, KeyError, ValueError) as exc:
             raise PerceptionError(f"{path}: not a readable world-state file ({exc}); rerun the predictor "
                                   "that wrote it") from None
-
-
-def state_path(video_path: str | Path) -> Path:
-    video_path = Path(video_path)
-    return video_path.with_name(video_path.stem + STATE_SUFFIX)
 
 
 def static_background(n_frames: int) -> tuple[np.ndarray, np.ndarray]:

@@ -43,6 +43,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..atomic import atomic_file
 from ..metrics.background import detect_background_corners
 from ..video import REFERENCE_FPS, Video, align_video, aligned_length, frames_until, reference_times, resize_maps
 from . import weights
@@ -198,9 +199,8 @@ class NeuralBackend:
             path.parent.mkdir(parents=True, exist_ok=True)
             for stale in path.parent.glob(f"{sample_id}-{label}-*.npz"):
                 stale.unlink()
-            tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez_compressed(tmp, **arrays)
-            tmp.replace(path)
+            with atomic_file(path, suffix=".npz") as tmp:
+                np.savez_compressed(tmp, **arrays)
         return arrays
 
     # -- perception --------------------------------------------------------------------------

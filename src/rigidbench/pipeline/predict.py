@@ -41,23 +41,22 @@ from types import MappingProxyType
 
 from tqdm import tqdm
 
+from ..atomic import atomic_file
 from ..context import RunContext
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..evaluation.cache import write_json
 from ..jsonio import write_json as write_json_atomic
 from ..evaluation.provenance import versions
+from ..folders import (GENERATION_FILE, RECORDS_DIR, SETTINGS_FILE, VIDEO_EXTENSIONS,  # noqa: F401 (re-exported)
+                       PredictionsFolder, state_path)
 from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported
-from ..perception.gt import state_path
 from ..predictors import (SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo, example_seed,
                           model_inputs, predictor_info)
-from ..video import VIDEO_EXTENSIONS, write_video
+from ..video import write_video
 
 log = logging.getLogger(__name__)
 
-SETTINGS_FILE = ".predictor.json"  # hidden: validate and evaluate skip it
-GENERATION_FILE = "generation.json"
-RECORDS_DIR = ".generation"  # one record per finished example, durable on its own (hidden)
 FILE_MODE = 0o644  # videos get the permissions of the JSON files beside them (jsonio)
 INTERRUPTED = "interrupted"  # a record's status when the run stopped before the example was done
 VERSION_PACKAGES = ("diffusers", "transformers", "peft", "httpx")
@@ -79,21 +78,19 @@ def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if pred.state is not None:
-        pred.state.save(state_path(out_dir / f"{sample_id}.mp4"))  # atomic
+        pred.state.save(PredictionsFolder(out_dir).state(sample_id))  # atomic
     if pred.video_path is not None:
         source = Path(pred.video_path)
-        video = out_dir / f"{sample_id}{source.suffix.lower() or '.mp4'}"
-        tmp_video = out_dir / f".{sample_id}.partial{video.suffix}"  # hidden: validate and evaluate ignore it
-        shutil.copyfile(source, tmp_video)
-        os.chmod(tmp_video, FILE_MODE)
-        tmp_video.replace(video)
+        video = PredictionsFolder(out_dir).video(sample_id, source.suffix.lower() or ".mp4")
+        # hidden: validate and evaluate ignore it; remove_temporaries finds it by name
+        with atomic_file(video, tmp=out_dir / f".{sample_id}.partial{video.suffix}", mode=FILE_MODE) as tmp_video:
+            shutil.copyfile(source, tmp_video)
         return
     if pred.frames is None:
         raise TypeError(f"example {sample_id}: a Prediction needs frames or a video_path")
-    tmp_video = out_dir / f".{sample_id}.partial.mp4"
-    write_video(tmp_video, pred.frames, fps=fps if fps is not None else pred.fps, lossless=pred.lossless)
-    os.chmod(tmp_video, FILE_MODE)
-    tmp_video.replace(out_dir / f"{sample_id}.mp4")
+    video = PredictionsFolder(out_dir).video(sample_id)
+    with atomic_file(video, tmp=out_dir / f".{sample_id}.partial.mp4", mode=FILE_MODE) as tmp_video:
+        write_video(tmp_video, pred.frames, fps=fps if fps is not None else pred.fps, lossless=pred.lossless)
 
 
 def remove_temporaries(out_dir: Path, sample_id: str) -> None:
@@ -112,7 +109,7 @@ def finished_ids(out_dir: Path, settings: dict, needs_state: bool) -> set[str]:
 
     ``.predictor.json`` records the settings of the last run; with other settings nothing counts as
     finished and the selected examples are written again (other files are left alone)."""
-    path = out_dir / SETTINGS_FILE
+    path = PredictionsFolder(out_dir).settings
     previous = _read_settings(path)
     out_dir.mkdir(parents=True, exist_ok=True)
     if previous != settings:
@@ -155,7 +152,7 @@ def settings_digest(settings: dict) -> str:
 
 def write_example_record(out_dir: Path, sample_id: str, digest: str, entry: dict) -> None:
     """``OUT/.generation/<id>.json``: the example's record, atomically and fsynced, as soon as it is done."""
-    write_json_atomic(Path(out_dir) / RECORDS_DIR / f"{sample_id}.json",
+    write_json_atomic(PredictionsFolder(out_dir).record(sample_id),
                       {"id": sample_id, "settings": digest, "entry": entry}, durable=True)
 
 
@@ -178,8 +175,8 @@ class GenerationLog:
 
     def __init__(self, out_dir: Path, header: dict, finished: set[str] = frozenset(), recover=None):
         self.out_dir = Path(out_dir)
-        self.path = self.out_dir / GENERATION_FILE
-        self.records_dir = self.out_dir / RECORDS_DIR
+        self.path = PredictionsFolder(self.out_dir).generation
+        self.records_dir = PredictionsFolder(self.out_dir).records_dir
         self.digest = settings_digest({k: header[k] for k in ("predictor", "settings")})
         self.lock = threading.Lock()
         previous = _read_json(self.path, "it is rebuilt from the per-example records") or {}
@@ -451,7 +448,7 @@ def example_context(ctx: PredictContext, sample_id: str) -> PredictContext:
 def _dry_run(predictor: Predictor, refs: list[Path], out_dir: Path, settings: dict, ctx: PredictContext,
              summary: PredictSummary) -> PredictSummary:
     """Print the request of every example that a real run would generate; send and write nothing."""
-    previous = out_dir / SETTINGS_FILE
+    previous = PredictionsFolder(out_dir).settings
     same = previous.exists() and json.loads(previous.read_text()) == settings
     for ref in refs:
         if same and any((out_dir / f"{ref.name}{ext}").exists() for ext in VIDEO_EXTENSIONS):

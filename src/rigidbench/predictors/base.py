@@ -35,15 +35,12 @@ import numpy as np
 
 from ..benchmark import NEGATIVE_PROMPT, full_prompt
 from ..context import RunContext
+from ..folders import SCRATCH_DIR, PredictionsFolder  # noqa: F401 (SCRATCH_DIR re-exported)
 from ..perception.gt import WorldState
 from ..registry import load_target
 
 
 #: How an example's seed follows from the base seed (recorded in every run's settings and generation.json).
-#: Folder inside a predictions directory for a run's temporary files (re-rendered bundles, Blender's own);
-#: hidden, so validate and evaluate skip it.
-SCRATCH_DIR = ".scratch"
-
 SEED_RULE = ("per example: the first 4 bytes of sha256('<base seed>/<example id>') (UTF-8) as a big-endian integer, "
              "top bit cleared (0 <= seed < 2**31)")
 
@@ -205,7 +202,7 @@ class FailureMode(Predictor):
 
     def predict(self, sample, ctx: PredictContext) -> Prediction:
         options = {"registry": ctx.registry, "bundle_dir": ctx.keep_bundle_dir,
-                   "scratch_dir": Path(ctx.out_dir) / SCRATCH_DIR if ctx.out_dir is not None else None}
+                   "scratch_dir": PredictionsFolder(ctx.out_dir).scratch_dir if ctx.out_dir is not None else None}
         return self.function(sample, float(ctx.severity), **{k: v for k, v in options.items() if k in self._accepts})
 
     def settings(self, ctx: PredictContext) -> dict[str, Any]:

@@ -59,9 +59,9 @@ from ..config import Registry, registry as packaged_registry
 from ..errors import BundleError, PredictionError
 from ..groundtruth.bundle import Sample
 from ..groundtruth.camera_model import project
-from ..groundtruth.contacts import quat_to_matrix
 from ..groundtruth.tracks import carry, visibility
 from ..perception.gt import WorldState, static_background
+from ..rotations import quat_to_matrix
 from ..spec.types import BodyPhysics
 from .base import Prediction
 

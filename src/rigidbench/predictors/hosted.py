@@ -57,7 +57,7 @@ import numpy as np
 from ..config import FieldReader, config_file, read_config_yaml
 from ..errors import ConfigError, PredictionError, UserError
 from ..jsonio import write_json
-from ..video import VIDEO_EXTENSIONS
+from ..folders import VIDEO_EXTENSIONS, PredictionsFolder
 from .base import SEED_RULE, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
 from .replicate import (TOKEN_ENV, CallStats, ClientSettings, CreationUncertain, Deadline, ReplicateClient,
                         ReplicateError, StopRequested, base_url_from_env, output_url, public_url, token_from_env)
@@ -65,7 +65,6 @@ from .replicate import (TOKEN_ENV, CallStats, ClientSettings, CreationUncertain,
 log = logging.getLogger(__name__)
 
 MODELS_FILE = "models.yaml"
-STATE_DIR = ".hosted"  # hidden: validate, evaluate and the predict stage's scan skip it
 RESTART_STATUSES = ("failed", "canceled", "aborted")
 #: how much earlier than its intent a prediction may be stamped and still be adopted (clocks differ)
 CLOCK_SKEW_S = 120.0
@@ -420,7 +419,7 @@ class HostedPredictor(Predictor):
                "headers": {"Authorization": f"Bearer ${TOKEN_ENV}", "Prefer": "wait"},
                "body": {"input": self._inputs(model, inputs, image, ctx)}}
         if ctx.out_dir is not None:
-            state = _read_state(Path(ctx.out_dir) / STATE_DIR / f"{Path(sample.path).name}.json")
+            state = _read_state(PredictionsFolder(ctx.out_dir).hosted_state(Path(sample.path).name))
             if state and "prediction_id" in state and state.get("status") not in RESTART_STATUSES:
                 out["resumes_prediction"] = state["prediction_id"]
             elif state and "intent" in state:
@@ -452,7 +451,7 @@ class HostedPredictor(Predictor):
     def recover_record(self, out_dir: Path, sample_id: str) -> dict | None:
         """A generation record rebuilt from ``.hosted/<id>.json`` for a video whose record was lost (the run
         was killed between writing the video and its record); None without a stored prediction id."""
-        state = _read_state(Path(out_dir) / STATE_DIR / f"{sample_id}.json")
+        state = _read_state(PredictionsFolder(out_dir).hosted_state(sample_id))
         if not state or not isinstance(state.get("prediction_id"), str):
             return None
         record = dict(state.get("record") or {})
@@ -479,12 +478,12 @@ class HostedPredictor(Predictor):
         if ctx.out_dir is None:
             raise PredictionError(f"example {sample_id}: hosted models need the run's output directory "
                                   "(run them through the predict stage)")
-        state_dir = Path(ctx.out_dir) / STATE_DIR
+        state_dir = PredictionsFolder(ctx.out_dir).hosted_dir
         with self._lock:
             self._state_dirs.add(state_dir)
         if state_dir.is_dir():
             self._clean_temporaries(state_dir, sample_id)
-        state_path = state_dir / f"{sample_id}.json"
+        state_path = PredictionsFolder(ctx.out_dir).hosted_state(sample_id)
         deadline = Deadline(cfg.client.example_timeout_s, stop=self._stop)
         stats = CallStats()
         timings: dict[str, float] = {}

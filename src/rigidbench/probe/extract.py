@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..atomic import atomic_file
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
 from ..perception.device import resolve_device
@@ -160,14 +161,12 @@ def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None
             for (b, tau), parts in acts.items():
                 path = shard_path(out, b, tau, name)
                 path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(f".{path.name}.tmp")
-                save_file({"h": np.ascontiguousarray(np.concatenate(parts))}, str(tmp))
-                tmp.replace(path)
+                with atomic_file(path) as tmp:
+                    save_file({"h": np.ascontiguousarray(np.concatenate(parts))}, str(tmp))
             rows = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
             (out / "rows").mkdir(exist_ok=True)
-            tmp = out / "rows" / f".{name}.tmp.npz"
-            np.savez(tmp, **rows)
-            tmp.replace(out / "rows" / f"{name}.npz")
+            with atomic_file(out / "rows" / f"{name}.npz", suffix=".npz") as tmp:
+                np.savez(tmp, **rows)
             manifest["chunks"].append({"name": name, "clips": written, "rows": int(len(rows["clip"]))})
         manifest.setdefault("empty", []).extend(empty)
         manifest["failed"].update(summary.failed)

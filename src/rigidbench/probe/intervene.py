@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..atomic import atomic_file
 from ..errors import UserError
 from ..perception.device import resolve_device
 from ..stats.bootstrap import bootstrap_ci
@@ -112,9 +113,8 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
                 fitted = fit_bases(store.cell(b, tau), position, device=inlp_dev, dtype=inlp_dtype)
                 info = {k: v for k, v in fitted.items() if k not in ("position", "random", "pc")}
                 cell = {k: fitted[k] for k in ("position", "random", "pc")}
-                tmp = path.with_name(f".{path.name}.tmp.npz")
-                np.savez(tmp, facts=json.dumps(info), **{k: v.astype(np.float32) for k, v in cell.items()})
-                tmp.replace(path)
+                with atomic_file(path, suffix=".npz") as tmp:
+                    np.savez(tmp, facts=json.dumps(info), **{k: v.astype(np.float32) for k, v in cell.items()})
             bases[(b, tau)] = cell
             alphas[(b, tau)] = float(info["alpha_pc"])
             facts.append({"block": b, "tau": tau, **info})

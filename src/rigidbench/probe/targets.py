@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..rotations import quat_canonical
 from .pooling import slot_frames
 
 #: name -> (dimension, kind); kind "binary" is scored by ROC-AUC, "continuous" by R^2
@@ -31,10 +32,6 @@ TARGETS: dict[str, tuple[int, str]] = {
     "contact": (1, "binary"),
     "contact_normal": (3, "continuous"),
 }
-
-
-def _canonical(q: np.ndarray) -> np.ndarray:
-    return np.where(q[..., :1] < 0, -q, q)
 
 
 def slot_targets(positions: np.ndarray, quats: np.ndarray, velocity: np.ndarray, angular: np.ndarray,
@@ -61,8 +58,8 @@ def slot_targets(positions: np.ndarray, quats: np.ndarray, velocity: np.ndarray,
         if not f:
             continue
         out["position"][s] = positions[:, f].mean(axis=1)
-        q = _canonical(quats[:, f]).mean(axis=1)
-        out["orientation"][s] = _canonical(q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12))
+        q = quat_canonical(quats[:, f]).mean(axis=1)
+        out["orientation"][s] = quat_canonical(q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12))
         out["linear_velocity"][s] = velocity[:, f].mean(axis=1)
         out["angular_velocity"][s] = angular[:, f].mean(axis=1)
         out["acceleration"][s] = accel[:, f].mean(axis=1)

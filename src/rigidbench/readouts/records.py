@@ -17,14 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
+from rigidbench.atomic import write_text
 from rigidbench.errors import UserError
+from rigidbench.folders import READOUTS_SUFFIX, RunFolder
 from rigidbench.readouts import compute_readouts, context_from_sample
 from rigidbench.readouts.flags import FLAGS, THRESHOLDS
 
 #: the scalars summarised by median and IQR: name in the compact summary -> (readout, key)
 DISTRIBUTIONS = {"speed": ("speed", "value"), "gravity": ("gravity", "value"),
                  "gravity_per_speed2": ("gravity", "per_speed2"), "restitution": ("restitution", "value")}
-SUFFIX = ".readouts.json"
 
 
 def to_jsonable(x):
@@ -62,11 +63,9 @@ def example_readouts(sample, inputs, scores: dict, out_dir: str | Path) -> dict:
     iddrift = scores.get("iddrift")
     ctx = context_from_sample(sample, inputs, None if iddrift is None else iddrift.value)
     readouts = compute_readouts(ctx)
-    path = Path(out_dir) / "examples" / f"{sample.sample_id}{SUFFIX}"
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(to_jsonable({"id": sample.sample_id, "task": sample.task,
-                                           "partition": sample.partition, "readouts": readouts}), indent=1))
-    tmp.replace(path)
+    path = RunFolder(out_dir).readouts(sample.sample_id)
+    write_text(path, json.dumps(to_jsonable({"id": sample.sample_id, "task": sample.task,
+                                             "partition": sample.partition, "readouts": readouts}), indent=1))
     return summary(readouts)
 
 
@@ -74,7 +73,7 @@ def _record_summary(record: dict, out_dir: Path | None) -> dict | None:
     if isinstance(record.get("readouts"), dict):
         return record["readouts"]
     if out_dir is not None:  # a record reused from a run before readouts: read its file if there is one
-        path = out_dir / "examples" / f"{record['id']}{SUFFIX}"
+        path = RunFolder(out_dir).readouts(record["id"])
         if path.exists():
             return summary(json.loads(path.read_text())["readouts"])
     return None
@@ -119,16 +118,15 @@ def aggregate_readouts(records: list[dict], out_dir: str | Path | None = None) -
 def load_run_readouts(run_dir: str | Path) -> tuple[str, dict, list[dict]]:
     """(model, readouts block, per-example readout files) of a run folder; the block is recomputed from the
     per-example files when results.json has none (a run scored before readouts existed)."""
-    run_dir = Path(run_dir)
-    results_path = run_dir / "results.json"
-    results = json.loads(results_path.read_text()) if results_path.exists() else {}
-    examples = [json.loads(p.read_text()) for p in sorted((run_dir / "examples").glob(f"*{SUFFIX}"))]
+    folder = RunFolder(run_dir)
+    results = json.loads(folder.results.read_text()) if folder.results.exists() else {}
+    examples = [json.loads(p.read_text()) for p in sorted(folder.examples_dir.glob(f"*{READOUTS_SUFFIX}"))]
     block = results.get("readouts")
     if block is None:
         records = [{"id": e["id"], "task": e.get("task", ""), "partition": e.get("partition", ""),
                     "readouts": summary(e["readouts"])} for e in examples]
         block = aggregate_readouts(records)
-    return results.get("model", run_dir.name), block, examples
+    return results.get("model", folder.path.name), block, examples
 
 
 def _fmt(d: dict) -> str:
@@ -174,7 +172,7 @@ def cmd_readouts(args, ctx=None) -> int:
     """CLI: rigidbench readouts RUN [RUN ...] [--examples]: print each run's readouts."""
     for run in args.runs:
         run = Path(run)
-        if not (run / "examples").is_dir():
+        if not RunFolder(run).examples_dir.is_dir():
             raise UserError(f"{run}: not a run folder (no examples/); run `rigidbench evaluate` first")
         model, block, examples = load_run_readouts(run)
         for line in format_block(model, block):

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rigidbench.folders import GENERATION_FILE, PredictionsFolder
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import Intervals, ReportData, higher_is_better, paired_vs_baseline
 from rigidbench.report.examples import resolve_dir
@@ -60,7 +61,6 @@ from rigidbench.report.tables import (
 
 log = logging.getLogger(__name__)
 
-GENERATION_FILE = "generation.json"   # rigidbench.pipeline.predict.GENERATION_FILE
 CHECKPOINT_FILE = "checkpoint.json"   # rigidbench.train.checkpoint.CHECKPOINT_FILE
 MODE_LABELS = {"lora": "LoRA", "full": "Full FT"}
 _STEP = re.compile(r"^step-(\d+)$")
@@ -102,7 +102,7 @@ def _read_generation(run) -> tuple[dict | None, str]:
     if pred_dir is None:
         return None, f"predictions directory '{run.predictions}' not found" if run.predictions else \
             "no predictions directory in run.json"
-    path = pred_dir / GENERATION_FILE
+    path = PredictionsFolder(pred_dir).generation
     if not path.is_file():
         return None, f"no {GENERATION_FILE} in {pred_dir}"
     try:

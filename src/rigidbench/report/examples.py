@@ -31,12 +31,13 @@ from pathlib import Path
 import numpy as np
 
 from rigidbench.errors import RigidBenchError
+from rigidbench.folders import RunFolder, SplitFolder, find_prediction
 from rigidbench.groundtruth.bundle import Sample
 from rigidbench.metrics import METRICS
 from rigidbench.perception.base import packed_frames
 from rigidbench.report.analysis import ReportData
 from rigidbench.report.load import RunInfo
-from rigidbench.video import VIDEO_EXTENSIONS, write_video
+from rigidbench.video import write_video
 
 log = logging.getLogger(__name__)
 
@@ -142,20 +143,14 @@ def find_bundle(runs: tuple[RunInfo, ...], sample_id: str) -> Path | None:
     """The reference bundle of `sample_id` under the first run's recorded data directory that holds it."""
     for run in runs:
         data = resolve_dir(run.data, run.path)
-        if data is not None and (data / sample_id / "metadata.json").is_file():
+        if data is not None and SplitFolder(data).bundle(sample_id).metadata.is_file():
             return data / sample_id
     return None
 
 
-def find_prediction(pred_dir: Path, sample_id: str) -> Path | None:
-    """pred_dir/<id>.<ext> for the first video extension present (as `rigidbench evaluate` looks for it)."""
-    found = (pred_dir / f"{sample_id}{ext}" for ext in VIDEO_EXTENSIONS)
-    return next((path for path in found if path.is_file()), None)
-
-
 def perception_cache(run_dir: Path, sample_id: str) -> Path | None:
     """The newest perception cache of this example in the run (``cache/<id>-<backend>-<key>.npz``), or None."""
-    found = [p for p in (Path(run_dir) / "cache").glob(f"{sample_id}-*.npz") if not p.name.endswith(".tmp.npz")]
+    found = [p for p in RunFolder(run_dir).cache_dir.glob(f"{sample_id}-*.npz") if not p.name.endswith(".tmp.npz")]
     return max(found, key=lambda p: p.stat().st_mtime) if found else None
 
 
@@ -458,7 +453,10 @@ def _model_row(data: ReportData, m: int, j: int, ex: _Example, out: Path) -> Str
     if pred_dir is None:
         where = f"'{run.predictions}' (from run.json)" if run.predictions else "not recorded in run.json"
         return StripRow(label, scores, None, None, f"no filmstrip: predictions directory {where} not found")
-    pred = find_prediction(pred_dir, sample_id)
+    try:  # evaluate's rule (folders.find_prediction): several videos for one id, or an unreadable one, is not loaded
+        pred = find_prediction(pred_dir, sample_id)
+    except READ_ERRORS as exc:
+        return StripRow(label, scores, None, None, f"no filmstrip: prediction not loaded ({exc})")
     if pred is None:
         return StripRow(label, scores, None, None, f"no filmstrip: no prediction for {sample_id} in {pred_dir}")
     try:

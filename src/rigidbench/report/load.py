@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rigidbench.errors import ReportError
+from rigidbench.folders import RunFolder
 from rigidbench.metrics import METRICS
 
 log = logging.getLogger(__name__)
@@ -100,15 +101,16 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
         what = "is a file, not a run directory" if run_dir.exists() else "run directory does not exist"
         raise ReportError(f"{run_dir}: {what}; pass directories written by "
                           "`rigidbench evaluate predictions/MODEL --out runs/MODEL`")
-    results_path = run_dir / "results.json"
+    folder = RunFolder(run_dir)
+    results_path = folder.results
     if not results_path.exists():
         raise ReportError(f"{run_dir}: no results.json, so this is not a finished evaluation run; run "
                           f"`rigidbench evaluate predictions/MODEL --out {run_dir}` first (it resumes)")
     results = _read_json(results_path, run_dir)
-    run = _read_json(run_dir / "run.json", run_dir) if (run_dir / "run.json").exists() else {}
+    run = _read_json(folder.run, run_dir) if folder.run.exists() else {}
     failed = dict(results.get("failed") or {})
     records = {}
-    for path in sorted(p for p in (run_dir / "examples").glob("*.json") if "." not in p.stem):  # not <id>.x.json
+    for path in folder.records():  # <id>.json, not <id>.x.json
         record = _read_json(path, run_dir)
         sample_id = str(record.get("id", path.stem))
         if sample_id in failed:
@@ -118,7 +120,7 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
                 raise ReportError(f"{path}: example record has no '{key}'; rerun `rigidbench evaluate` for {run_dir}")
         records[sample_id] = record
     if not records:
-        raise ReportError(f"{run_dir}: no scored examples in {run_dir / 'examples'}; every example failed or the "
+        raise ReportError(f"{run_dir}: no scored examples in {folder.examples_dir}; every example failed or the "
                           "run was interrupted before scoring one. Rerun `rigidbench evaluate` for it")
     perception = run.get("perception") or {}
     info = RunInfo(

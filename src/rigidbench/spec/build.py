@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import SpecError
 from ..config import ObjectConfig, Registry, TaskStep
+from ..rotations import quat_about_y, quat_about_z, quat_to_matrix
 from . import cluster as cluster_ops
 from . import footprint
 from .types import Body, BodyPhysics, RampShape, SceneSpec, SimSpec, SupportSpec, quat_mul
@@ -35,21 +36,6 @@ MAX_LAYOUT_ATTEMPTS = 20
 RAMP_START_FRACTION = 0.25  # objects start a quarter of the way down the slope
 
 
-def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:
-    return (math.cos(angle_rad / 2), 0.0, 0.0, math.sin(angle_rad / 2))
-
-
-def _quat_y(angle_rad: float) -> tuple[float, float, float, float]:
-    return (math.cos(angle_rad / 2), 0.0, math.sin(angle_rad / 2), 0.0)
-
-
-def _rotation_matrix(q: tuple[float, ...]) -> np.ndarray:
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 def _box_corners(size_m: tuple[float, float, float]) -> np.ndarray:
     h = np.asarray(size_m) / 2
     return np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * h
@@ -57,7 +43,7 @@ def _box_corners(size_m: tuple[float, float, float]) -> np.ndarray:
 
 def body_aabb(body: Body) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned bounds (min, max) of a body's rotated bounding box in its parent frame."""
-    pts = _box_corners(body.size_m) @ _rotation_matrix(body.quat_wxyz).T + np.asarray(body.position_m)
+    pts = _box_corners(body.size_m) @ quat_to_matrix(body.quat_wxyz, normalize=False).T + np.asarray(body.position_m)
     return pts.min(0), pts.max(0)
 
 
@@ -129,7 +115,7 @@ class _Builder:
             lo = np.min([body_aabb(b)[0] for b in group], axis=0)
             hi = np.max([body_aabb(b)[1] for b in group], axis=0)
             xy = (lo[:2] + hi[:2]) / 2
-        body = self.new_body(obj, step, (xy[0], xy[1], 0.0), _quat_z(yaw))
+        body = self.new_body(obj, step, (xy[0], xy[1], 0.0), quat_about_z(yaw))
         bottom = body_aabb(body)[0][2]
         body = _with_position(body, (xy[0], xy[1], height + PLACEMENT_CLEARANCE_M - bottom))
         layout.bodies.append(body)
@@ -152,7 +138,7 @@ class _Builder:
             foot = 0.0
         plus = p["descends"] == "+x"
         centre_x = foot - length / 2 if plus else foot + length / 2
-        quat = (1.0, 0.0, 0.0, 0.0) if plus else _quat_z(math.pi)
+        quat = (1.0, 0.0, 0.0, 0.0) if plus else quat_about_z(math.pi)
         body = Body(name=step.name, asset="ramp", role="passive", step=step.name,
                     position_m=(centre_x, 0.0, height / 2), quat_wxyz=quat, size_m=(length, width, height),
                     physics=BodyPhysics(0.0, self.reg.sim.passive_friction, self.reg.sim.passive_restitution),
@@ -172,7 +158,7 @@ class _Builder:
         z = shape.height_m * (1 - RAMP_START_FRACTION)
         normal = np.array([sign * math.sin(theta), 0.0, math.cos(theta)])
         # Long axis across the slope (so elongated objects roll), then tilt onto the slope.
-        quat = quat_mul(_quat_y(sign * theta), _quat_z(math.pi / 2))
+        quat = quat_mul(quat_about_y(sign * theta), quat_about_z(math.pi / 2))
         lift = obj.size_m[2] / 2 + PLACEMENT_CLEARANCE_M
         centre = np.array([x, ramp.position_m[1], z]) + normal * lift
         body = self.new_body(obj, step, centre, quat)
@@ -193,7 +179,7 @@ class _Builder:
                 cursor += sign * _uniform(self.rng, p["gap_m"])
             obj = _pick(self.rng, candidates)
             yaw = 2 * math.pi * float(self.rng.random())
-            body = self.new_body(obj, step, (0.0, 0.0, 0.0), _quat_z(yaw))
+            body = self.new_body(obj, step, (0.0, 0.0, 0.0), quat_about_z(yaw))
             lo, hi = body_aabb(body)
             near = lo[0] if sign > 0 else hi[0]
             far = hi[0] if sign > 0 else lo[0]
@@ -216,7 +202,7 @@ class _Builder:
         group = []
         for obj, (x, y) in zip(objs, relaxed):
             yaw = 2 * math.pi * float(self.rng.random())
-            body = self.new_body(obj, step, (0.0, 0.0, 0.0), _quat_z(yaw))
+            body = self.new_body(obj, step, (0.0, 0.0, 0.0), quat_about_z(yaw))
             bottom = body_aabb(body)[0][2]
             group.append(_with_position(body, (float(x), float(y), PLACEMENT_CLEARANCE_M - bottom)))
         layout.bodies.extend(group)

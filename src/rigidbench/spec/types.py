@@ -19,6 +19,10 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from .. import rotations
+
 SPEC_VERSION = 1
 
 
@@ -159,13 +163,8 @@ class SceneSpec:
 
 
 def quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
-    """Hamilton product of two (w, x, y, z) quaternions."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw)
+    """Hamilton product of two (w, x, y, z) quaternions, as a tuple of floats (``rotations.quat_mul``)."""
+    return tuple(float(v) for v in rotations.quat_mul(np.asarray(a, np.float64), np.asarray(b, np.float64)))
 
 
 def _from_data(tp: Any, value: Any) -> Any:

@@ -33,13 +33,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from ..atomic import atomic_file
 from ..errors import ConfigError, UserError
 from ..jsonio import write_json
 
@@ -62,10 +62,8 @@ def prompt_key(text: str) -> str:
 def _atomic_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
     from safetensors.torch import save_file
 
-    tmp = path.with_name(f".{path.name}.tmp")
-    save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp), metadata=metadata)
-    os.chmod(tmp, 0o644)  # safetensors creates the file private to its owner
-    os.replace(tmp, path)
+    with atomic_file(path, mode=0o644) as tmp:  # safetensors creates the file private to its owner
+        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp), metadata=metadata)
 
 
 PART_GLOB = "part-*-of-*"

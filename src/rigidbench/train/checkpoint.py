@@ -50,6 +50,7 @@ from typing import Any
 
 import torch
 
+from ..atomic import write_text
 from ..errors import ConfigError, UserError
 from .config import RESUMABLE_CHANGES, TrainConfig, model_spec
 from .distributed import DistInfo, barrier, broadcast_object
@@ -127,9 +128,7 @@ def prepare_run_dir(run_dir: Path, cfg: TrainConfig, info: DistInfo) -> None:
                 error = (f"{run_dir} holds a run with other settings (changed: {', '.join(changed)}); "
                          "resume it with its own settings or train into a new --out")
         if error is None:
-            tmp = path.with_name(".config.yaml.tmp")
-            tmp.write_text(f"# {cfg.source}\n" + yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-            os.replace(tmp, path)
+            write_text(path, f"# {cfg.source}\n" + yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     error = broadcast_object(info, error)
     if error:
         raise ConfigError(error)
@@ -139,9 +138,7 @@ def append_run_record(run_dir: Path, record: dict[str, Any]) -> None:
     path = run_dir / "run.json"
     runs = json.loads(path.read_text()) if path.is_file() else []
     runs.append(record)
-    tmp = path.with_name(".run.json.tmp")
-    tmp.write_text(json.dumps(runs, indent=1))
-    os.replace(tmp, path)
+    write_text(path, json.dumps(runs, indent=1))
 
 
 def truncate_metrics(run_dir: Path, step: int) -> None:
@@ -156,9 +153,7 @@ def truncate_metrics(run_dir: Path, step: int) -> None:
                 kept.append(line)
         except (ValueError, KeyError, TypeError):
             continue  # a line cut short by the kill
-    tmp = path.with_name(f".{METRICS_FILE}.tmp")
-    tmp.write_text("".join(f"{line}\n" for line in kept))
-    os.replace(tmp, path)
+    write_text(path, "".join(f"{line}\n" for line in kept))
 
 
 # -- export (what the predictor loads) ------------------------------------------------------------

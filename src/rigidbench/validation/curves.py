@@ -18,8 +18,9 @@ from tqdm import tqdm
 
 from ..errors import EXAMPLE_ERRORS
 from ..evaluation.scoring import score_example
+from ..folders import state_path
 from ..metrics import METRICS
-from ..perception.gt import GroundTruthBackend, state_path
+from ..perception.gt import GroundTruthBackend
 from ..predictors import PREDICTORS, PredictContext
 from ..video import Video, align_video, reference_times, resize_frames
 

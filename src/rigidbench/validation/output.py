@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_file, write_text
 from ..metrics import METRICS
 
 #: the validation's own quantities that are not metrics
@@ -78,14 +79,12 @@ def _fmt(x: float) -> str:
 
 def write_csv(rows: list[Row], path: Path) -> Path:
     """All rows as CSV (empty cells for NaN)."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_file(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
         writer.writeheader()
         for row in rows:
             d = asdict(row)
             writer.writerow({k: (_fmt(v) if isinstance(v, float) else v) for k, v in d.items()})
-    tmp.replace(path)
     return path
 
 
@@ -133,9 +132,7 @@ def write_markdown(rows: list[Row], summary: dict, path: Path) -> Path:
                   for c in curves] + [""]
     if summary["skipped"]:
         lines += ["## Skipped", ""] + [f"- {name}: {reason}" for name, reason in summary["skipped"].items()] + [""]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(path)
+    write_text(path, "\n".join(lines))
     return path
 
 

@@ -19,11 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_file
 from ..errors import EXAMPLE_ERRORS
 from ..evaluation.scoring import metric_inputs, score_inputs
 from ..groundtruth.bundle import Sample
+from ..folders import state_path
 from ..perception.features import FeatureNets
-from ..perception.gt import GroundTruthBackend, state_path
+from ..perception.gt import GroundTruthBackend
 from ..predictors import PREDICTORS, PredictContext
 from ..readouts import compute_readouts, context_from_sample
 from ..readouts.fits import bounce_coefficient
@@ -115,13 +117,11 @@ def write_readout_csv(rows: list[dict], path: Path) -> Path:
     import csv
 
     fields = ("mode", "severity", "example", "task", "readout", "measured", "truth")
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_file(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()
         for row in rows:
             writer.writerow({k: row.get(k) for k in fields})
-    tmp.replace(path)
     return path
 
 

@@ -11,6 +11,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..atomic import write_text
 from ..errors import UserError
 from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported, resolve_split_dir
 from ..metrics import METRICS
@@ -195,9 +196,7 @@ def validate_metrics(data_dir: str | Path, out_dir: str | Path, *, examples: int
     write_csv(rows, out_dir / f"{TABLE_STEM}.csv")
     write_markdown(rows, summary, out_dir / f"{TABLE_STEM}.md")
     write_figure(rows, skipped, out_dir / TABLE_STEM)
-    tmp = out_dir / "summary.json.tmp"
-    tmp.write_text(json.dumps(_json_safe(summary), indent=2))
-    tmp.replace(out_dir / "summary.json")
+    write_text(out_dir / "summary.json", json.dumps(_json_safe(summary), indent=2))
     return out_dir
 
 

@@ -1,0 +1,248 @@
+"""Typed homes for the three folders a user handles: their file names and how to find what is in them.
+
+- a split of bundles (``data/eval/``): one folder per example, ``<id>/`` with the files below
+  (``SplitFolder``, ``BundleFolder``);
+- a predictions folder (``predictions/MODEL/``): ``<id>.<ext>`` videos (``VIDEO_EXTENSIONS``), the
+  world state beside each (``<id>.state.npz``), ``generation.json``, and the hidden
+  ``.generation/<id>.json``, ``.predictor.json``, ``.hosted/`` and ``.scratch/`` (``PredictionsFolder``;
+  ``find_prediction`` is the one rule for an example's video);
+- a run folder (``runs/MODEL/``): ``results.json``, ``run.json``, ``examples/<id>.json|.npz|.readouts.json``
+  and ``cache/`` (``RunFolder``).
+
+Every producer and reader takes the names from here. Standard library only (and ``errors``):
+``rigidbench.benchmark``, imported by ``import rigidbench``, uses it.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import EvaluationError, VideoError
+
+# -- a split of bundles --------------------------------------------------------------------------
+
+FRAMES_DIR = "frames"
+VIDEO_FILE = "video.mp4"
+MASKS_FILE = "masks.npz"
+DEPTH_FILE = "depth.npz"
+TRAJECTORIES_FILE = "trajectories.npz"
+CONTACTS_FILE = "contacts.json"
+TRACKS_FILE = "tracks.npz"
+METADATA_FILE = "metadata.json"
+PROMPT_FILE = "prompt.txt"
+SPEC_FILE = "scene_spec.json"
+BUNDLE_FILES = (VIDEO_FILE, MASKS_FILE, DEPTH_FILE, TRAJECTORIES_FILE, CONTACTS_FILE, TRACKS_FILE, METADATA_FILE,
+                PROMPT_FILE, SPEC_FILE)
+
+
+def frame_name(k: int) -> str:
+    """File name of frame ``k`` (0-based) inside ``frames/``."""
+    return f"{k:05d}.png"
+
+
+@dataclass(frozen=True)
+class BundleFolder:
+    """One example's reference bundle, ``<split>/<id>/``."""
+
+    path: Path
+
+    @property
+    def sample_id(self) -> str:
+        return self.path.name
+
+    @property
+    def metadata(self) -> Path:
+        return self.path / METADATA_FILE
+
+    @property
+    def prompt(self) -> Path:
+        return self.path / PROMPT_FILE
+
+    @property
+    def video(self) -> Path:
+        return self.path / VIDEO_FILE
+
+    @property
+    def frames(self) -> Path:
+        return self.path / FRAMES_DIR
+
+    def frame(self, k: int) -> Path:
+        return self.path / FRAMES_DIR / frame_name(k)
+
+
+@dataclass(frozen=True)
+class SplitFolder:
+    """A split of bundles, ``data/<split>/``: ``<id>/`` per example."""
+
+    path: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "path", Path(self.path))
+
+    def bundle(self, sample_id: str) -> BundleFolder:
+        return BundleFolder(self.path / sample_id)
+
+
+# -- a predictions folder ------------------------------------------------------------------------
+
+#: Extensions read as videos (anything FFmpeg demuxes works; these are the ones we look for).
+VIDEO_EXTENSIONS = (".mp4", ".webm", ".mov", ".mkv", ".avi", ".gif")
+#: Largest prediction file read (bytes); a bigger one is refused before it is hashed or decoded.
+MAX_VIDEO_BYTES = 2 * 1024 ** 3
+STATE_SUFFIX = ".state.npz"  # the exact world state a built-in predictor writes beside its video
+GENERATION_FILE = "generation.json"
+RECORDS_DIR = ".generation"  # one record per finished example, durable on its own (hidden)
+SETTINGS_FILE = ".predictor.json"  # hidden: validate and evaluate skip it
+HOSTED_DIR = ".hosted"  # hidden: validate, evaluate and the predict stage's scan skip it
+#: A run's temporary files (re-rendered bundles, Blender's own); hidden, so validate and evaluate skip it.
+SCRATCH_DIR = ".scratch"
+
+
+def state_path(video_path: str | Path) -> Path:
+    """The world-state file beside a prediction's video: ``<id>.state.npz`` for ``<id>.<ext>``."""
+    video_path = Path(video_path)
+    return video_path.with_name(video_path.stem + STATE_SUFFIX)
+
+
+def check_video_file(path: str | Path, max_bytes: int = MAX_VIDEO_BYTES, what: str = "video file") -> int:
+    """path: a video file to read (a symbolic link to one is fine). Returns its size in bytes; raises
+    VideoError, without reading it, for anything but a regular file (a FIFO, a device such as /dev/zero, a
+    directory, a socket), an empty file, or one over ``max_bytes`` (MAX_VIDEO_BYTES), any of which could
+    otherwise block or exhaust a reader."""
+    path = Path(path)
+    try:
+        st = path.stat()  # follows symbolic links: what would be read
+    except FileNotFoundError:
+        raise VideoError(path, "file not found (or a broken symbolic link)") from None
+    except OSError as exc:
+        raise VideoError(path, f"cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a character device" if
+                stat.S_ISCHR(st.st_mode) else "a block device" if stat.S_ISBLK(st.st_mode) else "a directory"
+                if stat.S_ISDIR(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+        target = f" (a link to {os.path.realpath(path)})" if path.is_symlink() else ""
+        raise VideoError(path, f"is {kind}{target}, not a regular {what}; only regular files are read")
+    if st.st_size == 0:
+        raise VideoError(path, "file is empty (0 bytes)")
+    if st.st_size > max_bytes:
+        raise VideoError(path, f"is {st.st_size / 1e9:.2f} GB, over the {max_bytes / 1e9:.2f} GB limit for one "
+                               f"{what} (MAX_VIDEO_BYTES); re-encode it (a 2-second clip needs far less)")
+    return int(st.st_size)
+
+
+def find_prediction(pred_dir: str | Path, sample_id: str) -> Path | None:
+    """The one rule for an example's prediction: pred_dir/<id>.<ext> for the one video extension present
+    (several: EvaluationError), None for none. The file is checked before anything reads it: a regular file
+    (or a link to one) of at most MAX_VIDEO_BYTES, else VideoError (a FIFO or a link to /dev/zero would block
+    a reader for ever); so is the world-state file beside it, where there is one."""
+    pred_dir = Path(pred_dir)
+    found = [pred_dir / f"{sample_id}{ext}" for ext in VIDEO_EXTENSIONS
+             if (pred_dir / f"{sample_id}{ext}").exists() or (pred_dir / f"{sample_id}{ext}").is_symlink()]
+    if len(found) > 1:
+        raise EvaluationError(f"{sample_id}: several predictions ({', '.join(p.name for p in found)}); keep one")
+    if not found:
+        return None
+    check_video_file(found[0])
+    state = state_path(found[0])
+    if state.exists() or state.is_symlink():
+        check_video_file(state, what="world-state file")
+    return found[0]
+
+
+@dataclass(frozen=True)
+class PredictionsFolder:
+    """A predictions folder, ``predictions/MODEL/``."""
+
+    path: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "path", Path(self.path))
+
+    def video(self, sample_id: str, ext: str = ".mp4") -> Path:
+        return self.path / f"{sample_id}{ext}"
+
+    def state(self, sample_id: str) -> Path:
+        return state_path(self.video(sample_id))
+
+    def find(self, sample_id: str) -> Path | None:
+        return find_prediction(self.path, sample_id)
+
+    @property
+    def generation(self) -> Path:
+        return self.path / GENERATION_FILE
+
+    @property
+    def records_dir(self) -> Path:
+        return self.path / RECORDS_DIR
+
+    def record(self, sample_id: str) -> Path:
+        return self.records_dir / f"{sample_id}.json"
+
+    @property
+    def settings(self) -> Path:
+        return self.path / SETTINGS_FILE
+
+    @property
+    def hosted_dir(self) -> Path:
+        return self.path / HOSTED_DIR
+
+    def hosted_state(self, sample_id: str) -> Path:
+        return self.hosted_dir / f"{sample_id}.json"
+
+    @property
+    def scratch_dir(self) -> Path:
+        return self.path / SCRATCH_DIR
+
+
+# -- a run folder --------------------------------------------------------------------------------
+
+RESULTS_FILE = "results.json"
+RUN_FILE = "run.json"
+EXAMPLES_DIR = "examples"
+CACHE_DIR = "cache"
+READOUTS_SUFFIX = ".readouts.json"
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """A run folder, ``runs/MODEL/``: what ``rigidbench evaluate`` writes and ``report``/``readouts`` read."""
+
+    path: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "path", Path(self.path))
+
+    @property
+    def results(self) -> Path:
+        return self.path / RESULTS_FILE
+
+    @property
+    def run(self) -> Path:
+        return self.path / RUN_FILE
+
+    @property
+    def examples_dir(self) -> Path:
+        return self.path / EXAMPLES_DIR
+
+    @property
+    def cache_dir(self) -> Path:
+        return self.path / CACHE_DIR
+
+    def record(self, sample_id: str) -> Path:
+        """``examples/<id>.json``: the example's score record."""
+        return self.examples_dir / f"{sample_id}.json"
+
+    def arrays(self, sample_id: str) -> Path:
+        """``examples/<id>.npz``: the example's per-frame values."""
+        return self.examples_dir / f"{sample_id}.npz"
+
+    def readouts(self, sample_id: str) -> Path:
+        """``examples/<id>.readouts.json``: every readout of the example in full."""
+        return self.examples_dir / f"{sample_id}{READOUTS_SUFFIX}"
+
+    def records(self) -> list[Path]:
+        """The score records, sorted (``<id>.json``, not ``<id>.readouts.json`` or other ``<id>.x.json``)."""
+        return sorted(p for p in self.examples_dir.glob("*.json") if "." not in p.stem)
