@@ -246,7 +246,8 @@ def _lazy(target: str):
 def _add_render_commands(subparsers) -> None:
     """Register ``render`` and ``show`` on the ``rigidbench`` subparsers."""
     p = subparsers.add_parser("render", help="simulate and render examples into sample bundles "
-                                             "(DATA/<split>/<id>/); reruns skip complete bundles")
+                                             "(DATA/<split>/<id>/); reruns skip bundles that are complete and "
+                                             "rendered at the preset asked for")
     p.add_argument("--split", choices=("train", "eval"), default="eval", help="manifest to draw examples from")
     p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 (default: all)")
     p.add_argument("--limit", type=positive_int, help="only the first N selected examples")

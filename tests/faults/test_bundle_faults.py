@@ -132,11 +132,49 @@ def test_a_rendered_bundle_is_to_be_rendered_again(copies):
         Sample(bundle).depth
 
 
-def test_render_renders_a_damaged_bundle_again_and_skips_intact_ones(copies):
+def _as_our_renders(data: Path, dst: Path, monkeypatch) -> Path:
+    """Copies of the imported bundles that look like our own renders at the `test` preset (no `source`). They
+    have no scene spec, so render's completeness check is told to ignore that one file (check_bundle's own
+    rules are tested elsewhere); every other problem still counts."""
+    import json
+    import shutil
+
+    from rigidbench.pipeline import render
+
+    shutil.copytree(data, dst)
+    for meta_path in (dst / "eval").glob("*/metadata.json"):
+        meta = json.loads(meta_path.read_text())
+        meta.pop("source")
+        meta["preset"] = "test"
+        meta_path.write_text(json.dumps(meta))
+    real = render.B.check_bundle
+    monkeypatch.setattr(render.B, "check_bundle", lambda path, **kw: [p for p in real(path, **kw)
+                                                                     if not p.startswith("scene_spec.json")])
+    return dst
+
+
+def test_render_redoes_a_bundle_rendered_at_another_preset_and_never_overwrites_an_imported_one(copies, tmp_path,
+                                                                                                   monkeypatch):
+    """Rendering with another --quality into the same data folder used to keep the old bundles silently."""
+    from rigidbench import manifest
+    from rigidbench.errors import UserError
+    from rigidbench.pipeline.render import rows_to_render
+
+    data, _ = copies
+    rows = manifest.select(manifest.rows("eval", registry()), list(IDS), None)
+    with pytest.raises(UserError, match="imported from the published set"):
+        rows_to_render(rows, data, "preview")
+    ours = _as_our_renders(data, tmp_path / "ours", monkeypatch)
+    assert rows_to_render(rows, ours, "test") == [] and rows_to_render(rows, ours) == []
+    assert [r.sample_id for r in rows_to_render(rows[:1], ours, "preview")] == [rows[0].sample_id]
+    assert not (ours / "eval" / rows[0].sample_id).exists() and (ours / "eval" / rows[1].sample_id).is_dir()
+
+
+def test_render_renders_a_damaged_bundle_again_and_skips_intact_ones(copies, tmp_path, monkeypatch):
     from rigidbench import manifest
     from rigidbench.pipeline.render import is_complete, rows_to_render
 
-    data, _ = copies
+    data = _as_our_renders(copies[0], tmp_path / "ours", monkeypatch)
     rows = manifest.select(manifest.rows("eval", registry()), list(IDS), None)
     assert [r.sample_id for r in rows] == list(IDS)
     assert rows_to_render(rows, data) == []  # every bundle intact: nothing to render

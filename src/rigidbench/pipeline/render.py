@@ -10,6 +10,7 @@ with the example id and the reason; the other examples continue.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import shutil
@@ -57,23 +58,38 @@ def is_complete(data_dir: Path, row: ManifestRow) -> bool:
     return path.is_dir() and not B.check_bundle(path, deep=False)
 
 
-def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path) -> list[ManifestRow]:
-    """The rows without a complete bundle. A damaged bundle (one that fails ``check_bundle``) is removed
-    with a warning naming its problems, so that it is rendered again in its place; stale temporaries of
-    every row to render (``.<id>.tmp``, a killed render's) are removed too."""
+def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str | None = None) -> list[ManifestRow]:
+    """The rows without a complete bundle rendered at ``preset`` (any preset when None). A damaged bundle (one
+    that fails ``check_bundle``) or one rendered at another preset is removed with a warning saying why, so
+    that it is rendered again in its place; stale temporaries of every row to render (``.<id>.tmp``, a killed
+    render's) are removed too. Bundles imported from the published set are never rendered over: UserError."""
     todo = []
     for row in rows:
         path = bundle_dir(data_dir, row)
         if path.is_dir():
+            meta = _metadata(path)
+            if meta.get("source"):
+                raise UserError(f"{path.parent} holds bundles imported from the published set (e.g. {path.name}); "
+                                "`render` does not overwrite them: render into another --data")
             problems = B.check_bundle(path, deep=False)
-            if not problems:
+            if not problems and (preset is None or meta.get("preset") == preset):
                 continue
-            log.warning("example %s: the bundle in %s is damaged (%s); rendering it again", row.sample_id, path,
-                        "; ".join(problems[:3]))
+            why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
+                   f"was rendered at the '{meta.get('preset')}' preset, not '{preset}'")
+            log.warning("example %s: the bundle in %s %s; rendering it again", row.sample_id, path, why)
             shutil.rmtree(path)
         shutil.rmtree(path.with_name(f".{path.name}.tmp"), ignore_errors=True)  # a killed render's leftovers
         todo.append(row)
     return todo
+
+
+def _metadata(path: Path) -> dict:
+    """A bundle's metadata.json, or {} when it cannot be read (check_bundle then reports it as damaged)."""
+    try:
+        meta = json.loads((path / B.METADATA_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 # -- one example, in this process ------------------------------------------------------------------
@@ -180,7 +196,7 @@ def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path,
     preset = registry.preset(quality)
     if workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
-    todo = rows_to_render(rows, data_dir)
+    todo = rows_to_render(rows, data_dir, quality)
     skipped = len(rows) - len(todo)
     if skipped:
         log.info("%d of %d examples already have complete bundles in %s; skipping them", skipped, len(rows), data_dir)
@@ -296,7 +312,7 @@ def render_rows_with(executor: Executor, rows: Sequence[ManifestRow], registry: 
     from tqdm import tqdm
 
     registry.preset(quality)  # an unknown preset fails here, not on every worker
-    todo = rows_to_render(rows, data_dir)
+    todo = rows_to_render(rows, data_dir, quality)
     job = {"config_dirs": [str(d) for d in config_dirs], "preset": quality,
            "data_dir": str(Path(data_dir).resolve()), "device": device, "threads": threads}
     done_ids: list[str] = []
