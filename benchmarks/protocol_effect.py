@@ -11,12 +11,11 @@ machine); `--quick` takes one example at the `test` preset.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _rendered import json_stdout, render_eval_examples
 
 MODES = ("reference", "gamma", "slow", "camera-shake")
 
@@ -30,45 +29,35 @@ def main() -> int:
     ids = args.ids[:1] if args.quick else args.ids
     preset = "test" if args.quick else args.preset
     modes = MODES[:2] if args.quick else MODES
+    started = time.time()
+    with json_stdout() as emit, tempfile.TemporaryDirectory() as tmp:
+        out = run(ids, preset, modes, Path(tmp))
+        out["seconds"] = round(time.time() - started, 1)
+        emit(out)
+    return 0
 
-    from rigidbench import manifest
-    from rigidbench.config import load_registry
+
+def run(ids, preset: str, modes, root: Path) -> dict:
+    """Render ``ids`` at ``preset`` under ``root``, predict ``modes`` once, score them under both protocols."""
     from rigidbench.evaluation import evaluate
     from rigidbench.perception.features import FeatureNets
     from rigidbench.pipeline.predict import predict
-    from rigidbench.pipeline.render import render_to_bundle
     from rigidbench.predictors import PredictContext
 
-    started = time.time()
-    stdout_fd = os.dup(1)
-    os.dup2(2, 1)  # Blender prints its progress on stdout: keep stdout for the JSON alone
-    reg = load_registry()
-    rows = {r.sample_id: r for r in manifest.eval_rows(reg)}
     out: dict = {"ids": ids, "preset": preset, "protocols": {}}
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        for sample_id in ids:
-            render_to_bundle(rows[sample_id], reg, reg.preset(preset), root / "data")
-        data = root / "data" / "eval"
+    data = render_eval_examples(ids, preset, root)
+    for mode in modes:
+        predict(mode, data, root / "predictions" / mode, PredictContext(severity=0.5), progress=False)
+    for protocol in ("lossless", "rigidbench-v1"):
+        out["protocols"][protocol] = {}
         for mode in modes:
-            predict(mode, data, root / "predictions" / mode, PredictContext(severity=0.5), progress=False)
-        for protocol in ("lossless", "rigidbench-v1"):
-            out["protocols"][protocol] = {}
-            for mode in modes:
-                summary = evaluate(root / "predictions" / mode, data, root / protocol / mode, nets=FeatureNets(),
-                                   progress=False, protocol=protocol)
-                out["protocols"][protocol][mode] = {m: s["mean"] for m, s in summary.results["overall"].items()}
+            summary = evaluate(root / "predictions" / mode, data, root / protocol / mode, nets=FeatureNets(),
+                               progress=False, protocol=protocol)
+            out["protocols"][protocol][mode] = {m: s["mean"] for m, s in summary.results["overall"].items()}
     a, b = out["protocols"]["lossless"], out["protocols"]["rigidbench-v1"]
     out["change"] = {mode: {m: (None if a[mode][m] is None or b[mode][m] is None else b[mode][m] - a[mode][m])
                             for m in a[mode]} for mode in modes}
-    out["seconds"] = round(time.time() - started, 1)
-    sys.stdout.flush()
-    os.dup2(stdout_fd, 1)
-    json.dump(out, sys.stdout, indent=1)
-    print()
-    sys.stdout.flush()
-    os.dup2(2, 1)  # Blender's exit-time report (unfreed blocks) must not follow the JSON
-    return 0
+    return out
 
 
 if __name__ == "__main__":

@@ -12,14 +12,12 @@ Renders at the `test` preset by default (about a minute for five examples on a 2
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from _rendered import json_stdout, render_eval_examples
 
 MODES = ("reference", "slow", "static", "delayed", "camera-drift")
 TRACK_METRICS = ("ate", "ate3d", "iddrift")
@@ -49,51 +47,41 @@ def main() -> int:
     args = parser.parse_args()
     ids = args.ids[:2] if args.quick else args.ids
     modes = MODES[:2] if args.quick else MODES
+    started = time.time()
+    with json_stdout() as emit, tempfile.TemporaryDirectory() as tmp:
+        out = run(ids, args.preset, modes, Path(tmp))
+        out["seconds"] = round(time.time() - started, 1)
+        emit(out)
+    return 0
 
-    from rigidbench import manifest
-    from rigidbench.config import load_registry
+
+def run(ids, preset: str, modes, root: Path) -> dict:
+    """Render ``ids`` at ``preset`` under ``root``, then score ``modes`` with tracks by each rule."""
     from rigidbench.evaluation import evaluate
     from rigidbench.perception.features import FeatureNets
     from rigidbench.pipeline.predict import predict
-    from rigidbench.pipeline.render import render_to_bundle
     from rigidbench.predictors import PredictContext
 
-    started = time.time()
-    stdout_fd = os.dup(1)
-    os.dup2(2, 1)  # Blender prints its progress on stdout: keep stdout for the JSON alone
-    reg = load_registry()
-    rows = {r.sample_id: r for r in manifest.eval_rows(reg)}
-    out: dict = {"ids": ids, "preset": args.preset, "rules": {}}
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        for sample_id in ids:
-            render_to_bundle(rows[sample_id], reg, reg.preset(args.preset), root / "data")
-        data = root / "data" / "eval"
-        for rule in ("rigidbench", "published"):
-            facts = [retrack(data / i, rule) for i in ids]
-            scores = {}
-            for mode in modes:
-                preds = root / rule / "predictions" / mode
-                predict(mode, data, preds, PredictContext(severity=0.5), progress=False)
-                summary = evaluate(preds, data, root / rule / "runs" / mode, nets=FeatureNets(), progress=False,
-                                   protocol="lossless")
-                scores[mode] = {m: summary.results["overall"][m]["mean"] for m in TRACK_METRICS}
-            out["rules"][rule] = {"points": sum(f["points"] for f in facts),
-                                  "visible_frac": round(float(np.mean([f["visible_frac"] for f in facts])), 4),
-                                  "scores": scores}
+    out: dict = {"ids": ids, "preset": preset, "rules": {}}
+    data = render_eval_examples(ids, preset, root)
+    for rule in ("rigidbench", "published"):
+        facts = [retrack(data / i, rule) for i in ids]
+        scores = {}
+        for mode in modes:
+            preds = root / rule / "predictions" / mode
+            predict(mode, data, preds, PredictContext(severity=0.5), progress=False)
+            summary = evaluate(preds, data, root / rule / "runs" / mode, nets=FeatureNets(), progress=False,
+                               protocol="lossless")
+            scores[mode] = {m: summary.results["overall"][m]["mean"] for m in TRACK_METRICS}
+        out["rules"][rule] = {"points": sum(f["points"] for f in facts),
+                              "visible_frac": round(float(np.mean([f["visible_frac"] for f in facts])), 4),
+                              "scores": scores}
     a, b = out["rules"]["rigidbench"]["scores"], out["rules"]["published"]["scores"]
     out["max_abs_change"] = {m: max(abs((a[k][m] or 0) - (b[k][m] or 0)) for k in modes) for m in TRACK_METRICS}
     out["max_rel_change"] = {m: max(abs((a[k][m] or 0) - (b[k][m] or 0)) / max(abs(a[k][m] or 0), 1e-9)
                                     for k in modes if a[k][m]) if any(a[k][m] for k in modes) else None
                              for m in TRACK_METRICS}
-    out["seconds"] = round(time.time() - started, 1)
-    sys.stdout.flush()
-    os.dup2(stdout_fd, 1)
-    json.dump(out, sys.stdout, indent=1)
-    print()
-    sys.stdout.flush()
-    os.dup2(2, 1)  # Blender's exit-time report (unfreed blocks) must not follow the JSON
-    return 0
+    return out
 
 
 if __name__ == "__main__":

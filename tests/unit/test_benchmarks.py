@@ -70,7 +70,7 @@ def _strict(value) -> None:
 
 
 def test_every_benchmark_is_covered():
-    scripts = {p.name for p in BENCHMARKS.glob("*.py")}
+    scripts = {p.name for p in BENCHMARKS.glob("*.py") if not p.name.startswith("_")}  # _*.py: shared helpers
     assert scripts == set(QUICK) | set(SKIPPED), "add each new benchmark to QUICK (or SKIPPED, with a reason)"
     for name in scripts:
         assert (BENCHMARKS / name).read_text().lstrip().startswith('"""'), f"{name} has no docstring"

@@ -27,7 +27,7 @@ from .aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_officia
 from .cache import file_hash, input_key, reference_hash, write_json
 from .protocol import Protocol, get_protocol
 from .provenance import run_info
-from .scoring import metric_inputs, score_example
+from .scoring import metric_inputs, score_inputs
 
 log = logging.getLogger(__name__)
 
@@ -301,7 +301,8 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     aligned = perceived.aligned(ref_times)
     gen_rgb = align_video(video, ref_times)
     t0 = time.time()
-    scores = score_example(sample, gen_rgb, aligned, nets)
+    inputs = metric_inputs(sample, gen_rgb, aligned, nets)  # one adapter for the metrics and the readouts
+    scores = score_inputs(inputs)
     timings["metrics_s"] += time.time() - t0
     record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
               "protocol": protocol.name,
@@ -309,7 +310,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
               "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
               "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}
-    record["readouts"] = example_readouts(sample, metric_inputs(sample, gen_rgb, aligned, nets), scores, out_dir)
+    record["readouts"] = example_readouts(sample, inputs, scores, out_dir)
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
     with atomic_file(run_folder.arrays(sample_id), suffix=".npz") as tmp:
