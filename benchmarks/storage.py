@@ -46,40 +46,41 @@ def tiny_video(width: int, height: int, frames: int, steps: int) -> np.ndarray:
         predictor.close()
 
 
+def fidelity(frames: np.ndarray, decoded: np.ndarray, stored_bytes: int) -> dict:
+    """What storing ``frames`` lost: SSIM (mean and worst frame), largest error, PSNR (None when exact), size."""
+    from rigidbench.metrics.appearance import ssim
+
+    error = decoded.astype(np.float64) - frames
+    mse = float(np.mean(error ** 2))
+    result = ssim(frames, decoded)
+    return {"ssim": round(result.value, 6), "ssim_min_frame": round(float(np.min(result.per_frame)), 6),
+            "max_abs_error": int(np.abs(error).max()),
+            "psnr_db": None if mse == 0 else round(10 * np.log10(255.0 ** 2 / mse), 2), "bytes": stored_bytes}
+
+
 def compare(frames: np.ndarray, path: Path, lossless: bool) -> dict:
     """Write ``frames`` at 24 fps, decode them, and measure what was lost."""
-    from rigidbench.metrics.appearance import ssim
     from rigidbench.video import read_video, write_video
 
     write_video(path, frames, fps=24.0, lossless=lossless)
-    decoded = read_video(path).frames
-    error = decoded.astype(np.int16) - frames.astype(np.int16)
-    mse = float(np.mean(error.astype(np.float64) ** 2))
-    result = ssim(frames, decoded)
-    return {"ssim": round(result.value, 6), "ssim_min_frame": round(float(np.min(result.per_frame)), 6),
-            "max_abs_error": int(np.abs(error).max()),
-            "psnr_db": None if mse == 0 else round(10 * np.log10(255.0 ** 2 / mse), 2),
-            "bytes": path.stat().st_size}
+    return fidelity(frames, read_video(path).frames, path.stat().st_size)
 
 
-def compare_jpeg(frames: np.ndarray, folder: Path) -> dict:
-    """The release's storage: each frame a JPEG, quality 95, no chroma subsampling (PIL), read back."""
+def compare_jpeg(frames: np.ndarray) -> dict:
+    """The release's storage: each frame a JPEG, quality 95, no chroma subsampling (the rigidbench-v1 protocol's
+    round trip), read back; the size is that of the JPEG files."""
+    import io
+
     from PIL import Image
 
-    from rigidbench.metrics.appearance import ssim
+    from rigidbench.evaluation.protocol import jpeg_roundtrip
 
-    folder.mkdir()
-    decoded = np.empty_like(frames)
-    for t, frame in enumerate(frames):
-        path = folder / f"{t:05d}.jpg"
-        Image.fromarray(frame).save(path, quality=95, subsampling=0)
-        decoded[t] = np.asarray(Image.open(path).convert("RGB"))
-    error = decoded.astype(np.float64) - frames
-    result = ssim(frames, decoded)
-    return {"ssim": round(result.value, 6), "ssim_min_frame": round(float(np.min(result.per_frame)), 6),
-            "max_abs_error": int(np.abs(error).max()),
-            "psnr_db": round(10 * np.log10(255.0 ** 2 / np.mean(error ** 2)), 2),
-            "bytes": sum(f.stat().st_size for f in folder.iterdir())}
+    stored = 0
+    for frame in frames:
+        buffer = io.BytesIO()
+        Image.fromarray(frame).save(buffer, format="JPEG", quality=95, subsampling=0)
+        stored += buffer.tell()
+    return fidelity(frames, jpeg_roundtrip(frames, 95), stored)
 
 
 def main() -> None:
@@ -112,7 +113,7 @@ def both(frames: np.ndarray) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         before = compare(frames, Path(tmp) / "yuv420p_crf18.mp4", lossless=False)
         now = compare(frames, Path(tmp) / "rgb_lossless.mp4", lossless=True)
-        release = compare_jpeg(frames, Path(tmp) / "jpeg")
+        release = compare_jpeg(frames)
     return {"h264_yuv420p_crf18": before, "h264_rgb_lossless": now, "release_jpeg_q95_444": release,
             "ssim_difference": round(now["ssim"] - before["ssim"], 6)}
 

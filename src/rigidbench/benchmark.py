@@ -114,9 +114,6 @@ def _image_path(image: Path, folder: str | Path | None) -> str:
         return str(absolute)
 
 
-# -- the published archive's own layout ----------------------------------------------------------
-
-
 # -- loading -------------------------------------------------------------------------------------
 
 

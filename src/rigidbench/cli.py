@@ -421,8 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="neural perception device, e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--out", type=Path, help="run directory (default runs/<predictions dir name>)")
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
-    p.add_argument("--protocol", choices=("rigidbench-v1", "lossless"), default="rigidbench-v1",
-                   help="rigidbench-v1: the published evaluator's rules, comparable with the paper (generated frames "
+    p.add_argument("--protocol", default=None, metavar="NAME",
+                   help="evaluation protocol (default rigidbench-v1): rigidbench-v1: the published evaluator's rules, comparable with the paper (generated frames "
                         "go through JPEG q95 4:4:4 after resizing); lossless: no JPEG round trip (docs/metrics.md)")
     p.add_argument("--no-first-frame-check", action="store_true",
                    help="score predictions whose first frame is not their reference's (normally refused as made from "

@@ -37,6 +37,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .folders import BundleFolder
 from .video import iter_video
 
 #: Width in pixels of the thumbnails that are compared; the height follows the reference's aspect.
@@ -148,14 +149,14 @@ def mismatch_message(pred_path: str | Path, example_id: str, data_dir: str | Pat
 
 def read_reference_first_frame(bundle_dir: str | Path) -> np.ndarray | None:
     """(H,W,3) uint8 RGB first frame of a reference bundle (frames/00000.png, else video.mp4), or None."""
-    bundle_dir = Path(bundle_dir)
-    png = bundle_dir / "frames" / "00000.png"
+    folder = BundleFolder(Path(bundle_dir))
+    png = folder.frame(0)
     if png.is_file():
         from PIL import Image
 
         with Image.open(png) as image:
             return np.asarray(image.convert("RGB"))
-    video = bundle_dir / "video.mp4"
+    video = folder.video
     if video.is_file():
         return read_first_frame(video)
     return None

@@ -88,3 +88,23 @@ def test_a_damaged_score_record_is_scored_again(data, tmp_path, damage):
     second = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
     assert second.evaluated == ["00000"] and not second.failed
     assert second.results["overall"]["iou"]["mean"] == first.results["overall"]["iou"]["mean"]
+
+
+def test_a_score_made_without_the_first_frame_check_is_not_reused_with_it(data, tmp_path):
+    """The first-frame check is a rule, not an input: a record scored with it off is refused (not reused) by a
+    later run with it on, and scored again when it is off."""
+    from rigidbench.evaluation import evaluate
+    from rigidbench.perception.features import FeatureNets
+
+    other = tmp_path / "other"  # the same id in another set: a different scene and camera
+    ps.write_set(other / "src", [ps.PublishedSample("00000", "free_fall", "modern_loft", "in_distribution", 991,
+                                                    "apple")])
+    assert import_published(other / "src", other / "data", progress=False).ok
+    preds = tmp_path / "preds"
+    assert main(["predict", "reference", "--data", str(other / "data"), "--out", str(preds)]) == 0
+    loose = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False, first_frame_check=False)
+    assert loose.evaluated == ["00000"] and not loose.failed
+    strict = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
+    assert not strict.reused and "first frame does not match" in strict.failed["00000"]
+    again = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False, first_frame_check=False)
+    assert again.reused == ["00000"]

@@ -64,6 +64,20 @@ def test_panel_values_are_relative_to_the_truth(runs):
     assert gravity.size and np.all(np.abs(gravity - 1.0) < 0.1)  # the synthetic balls fall at 9.81 m/s^2
 
 
+def test_panel_values_on_hand_built_examples():
+    """Ratios against the simulated g, differences against the simulated rebound; undefined ones left out."""
+    def example(speed, g, g_sim, per_speed2, e, e_sim):
+        return {"readouts": {"speed": {"value": speed},
+                             "gravity": {"value": g, "simulated": g_sim, "per_speed2": per_speed2},
+                             "restitution": {"value": e, "reference": e_sim}}}
+
+    examples = [example(0.5, 3.0, 2.0, 12.0, 0.4, 0.3), example(None, None, 2.0, None, 0.1, None)]
+    np.testing.assert_allclose(panel_values(examples, "speed"), [0.5])
+    np.testing.assert_allclose(panel_values(examples, "gravity"), [1.5])
+    np.testing.assert_allclose(panel_values(examples, "gravity_per_speed2"), [6.0])
+    np.testing.assert_allclose(panel_values(examples, "restitution"), [0.1])
+
+
 def test_the_report_page_shows_the_section(runs, tmp_path):
     _, run_dirs = runs
     page = build_report(run_dirs, tmp_path / "report", resamples=200, examples=0).read_text()

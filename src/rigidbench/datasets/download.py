@@ -115,7 +115,7 @@ def download_dataset(desc: DatasetDescription, data: str | Path, *, keep_archive
     settings = settings or TransferSettings()
     root = download_dir(desc, data)
     root.mkdir(parents=True, exist_ok=True)
-    extracted = root / "extracted"
+    extracted = extracted_dir(desc, data)
     with _lock(root):
         marker = read_marker(desc, data)
         if marker is not None and extracted.is_dir():

@@ -296,8 +296,9 @@ def _contacts(raw: Any, names: list[str], T: int, where: Path) -> dict:
 
 
 def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=None,
-                   dataset: dict | None = None) -> dict:
-    """Write the bundle of one published sample ``src`` into the empty folder ``dst``; returns its metadata."""
+                   dataset: dict | None = None, digest: str | None = None) -> dict:
+    """Write the bundle of one published sample ``src`` into the empty folder ``dst``; returns its metadata.
+    ``digest``: its ``source_digest`` when the caller has it already."""
     meta = _read_json(src / "metadata.json")
     if not isinstance(meta, dict) or "task_type" not in meta:
         raise BundleError(f"{src / 'metadata.json'}: no task_type; is this a sample of the published set?")
@@ -375,7 +376,7 @@ def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=
         "software": {"rigidbench_import": __version__},
         "tracks": {"points_per_actor": POINTS_PER_ACTOR, "depth_tolerance": DEPTH_TOLERANCE, **rule.facts(),
                    "sampled": [int(n) for n in tracks.points_per_actor]},
-        "source": {**(dataset or {}), "sample_digest": source_digest(src), "original_metadata": meta,
+        "source": {**(dataset or {}), "sample_digest": digest or source_digest(src), "original_metadata": meta,
                    "manifest_row": row or None},
     }
     B.write_json(dst / B.METADATA_FILE, out)
@@ -407,19 +408,11 @@ def _replace(tmp: Path, final: Path) -> None:
         os.replace(tmp, final)
 
 
-def dataset_identity(desc=None, *, verified: bool = False) -> dict:
-    """The ``source`` facts of a dataset description (``datasets.describe.DatasetDescription``)."""
-    if desc is None:
-        return {"dataset": "unknown", "version": None, "md5": None, "md5_verified": False}
-    return {"dataset": desc.name, "version": desc.version, "md5": desc.md5, "md5_verified": bool(verified),
-            "doi": getattr(desc, "doi", None), "license": getattr(desc, "license", None)}
-
-
 def import_published(src: str | Path, data: str | Path, *, dataset: dict | None = None, registry=None,
                      ids: list[str] | None = None, progress: bool = True,
                      on_sample: Callable[[str, str], None] | None = None) -> ImportSummary:
     """Convert every published sample under ``src`` into ``data/eval/<id>/``; ``dataset`` is the identity
-    recorded in each bundle's ``source`` (``dataset_identity``). Resumable; per-sample failures are
+    recorded in each bundle's ``source`` (``DatasetDescription.identity()``). Resumable; per-sample failures are
     collected in the summary, never raised."""
     from tqdm import tqdm
 
@@ -446,7 +439,7 @@ def import_published(src: str | Path, data: str | Path, *, dataset: dict | None 
                 continue
             tmp = B.prepare_tmp(final)
             try:
-                convert_sample(folder, tmp, sample_id, row, registry=registry, dataset=dataset)
+                convert_sample(folder, tmp, sample_id, row, registry=registry, dataset=dataset, digest=digest)
                 problems = B.check_bundle(tmp)
                 if problems:
                     raise BundleError(f"{folder}: the imported bundle fails its check: {'; '.join(problems[:3])}")
@@ -467,5 +460,5 @@ def import_published(src: str | Path, data: str | Path, *, dataset: dict | None 
 
 
 __all__ = ["ImportSummary", "import_published", "convert_sample", "find_published_root", "is_published_root",
-           "is_published_sample", "published_samples", "source_digest", "dataset_identity",
+           "is_published_sample", "published_samples", "source_digest",
            "NO_HIT_DEPTH", "PUBLISHED_PIXEL_CONVENTION"]

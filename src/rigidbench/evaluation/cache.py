@@ -55,10 +55,12 @@ def reference_hash(sample_dir: Path) -> str:
     return digest.hexdigest()
 
 
-def input_key(prediction_key: str, reference_key: str, backend: str, nets_key: str, metrics: tuple[str, ...]) -> str:
+def input_key(prediction_key: str, reference_key: str, backend: str, nets_key: str, metrics: tuple[str, ...],
+              rules: str = "") -> str:
     """Everything an example's scores depend on: prediction, reference, perception backend and version,
-    feature networks, the metric set and the scoring version."""
-    text = f"{prediction_key}|{reference_key}|{backend}|{nets_key}|{','.join(metrics)}|{SCORE_VERSION}"
+    feature networks, the metric set, the evaluation rules (protocol and the checks that refuse an
+    example: a record scored under other rules is never reused) and the scoring version."""
+    text = f"{prediction_key}|{reference_key}|{backend}|{nets_key}|{','.join(metrics)}|{rules}|{SCORE_VERSION}"
     return hashlib.sha256(text.encode()).hexdigest()
 
 

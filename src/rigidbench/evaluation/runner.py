@@ -53,6 +53,23 @@ def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
             "results.json; not an official result)")
 
 
+def refusal(facts: dict, pred: Path, ref_dir: Path, first_frame_check: bool, allow_short: bool) -> str | None:
+    """Why an example is refused under these rules, from its record's facts (``first_frame``, ``coverage``), or
+    None: one rule for a fresh score and for a record reused from a run under other rules. A first frame that
+    is not the reference's (another set's inputs) is named before a short clip."""
+    first = facts.get("first_frame") or {}
+    if first_frame_check and first.get("matches") is False:
+        try:
+            metadata = Sample(ref_dir).metadata
+        except EXAMPLE_ERRORS:
+            metadata = {}
+        return mismatch_message(pred, ref_dir.name, ref_dir.parent, metadata, float(first.get("correlation", 0.0)))
+    coverage = facts.get("coverage") or {}
+    if coverage.get("short") and not allow_short:
+        return short_clip_message(pred, coverage, float(coverage.get("fps", 24.0)))
+    return None
+
+
 def ready_backend(perception: str, options: dict | None = None):
     """The perception backend, after checking it has every network weight it needs (EvaluationError
     listing each missing one, where it was looked for and how to fetch it, before any work starts)."""
@@ -132,13 +149,13 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
             log.warning("example %s failed: %s", sample_id, exc)
             continue
         pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
-        key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}|protocol:{rules.name}", nets_key,
-                        metrics)
-        record_path = run_folder.record(sample_id)
-        old = previous_record(record_path)
-        if old.get("input_key") == key and old.get("coverage", {}).get("short") and not allow_short:
-            failed[sample_id] = short_clip_message(pred, old["coverage"], old["coverage"].get("fps", 24.0))
-            log.warning("example %s failed: %s", sample_id, failed[sample_id])
+        key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}", nets_key, metrics,
+                        f"protocol={rules.name}")
+        old = previous_record(run_folder.record(sample_id))
+        why = refusal(old, pred, ref_dir, first_frame_check, allow_short) if old.get("input_key") == key else None
+        if why is not None:  # scored earlier under looser rules: the same refusal as a fresh score
+            failed[sample_id] = why
+            log.warning("example %s failed: %s", sample_id, why)
         elif old.get("input_key") == key:
             records.append(old)
             reused.append(sample_id)
@@ -277,12 +294,12 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     w, h = sample.resolution
     if video.size != (w, h):
         video.frames = resize_frames(video.frames, (w, h))
-    matches, correlation = check_first_frame(video.frames[0], sample.frame(0)) if first_frame_check else (True, None)
-    if not matches:  # generated from another set's inputs: refuse rather than score against the wrong scene
-        raise EvaluationError(mismatch_message(pred, sample_id, sample.path.parent, sample.metadata, correlation))
-    coverage = clip_coverage(video.times_s, ref_times, sample.fps)
-    if coverage["short"] and not allow_short:  # after the first-frame check: another set's clip is named as such
-        raise EvaluationError(short_clip_message(pred, coverage, sample.fps))
+    matches, correlation = check_first_frame(video.frames[0], sample.frame(0))
+    facts = {"first_frame": {"correlation": round(correlation, 4), "matches": bool(matches)},
+             "coverage": clip_coverage(video.times_s, ref_times, sample.fps)}
+    why = refusal(facts, pred, sample.path, first_frame_check, allow_short)
+    if why is not None:  # another set's inputs, or short of the span: refused rather than scored
+        raise EvaluationError(why)
     video.frames = protocol.prepare(video.frames)
     timings["decode_s"] += time.time() - t0
     t0 = time.time()
@@ -306,7 +323,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     timings["metrics_s"] += time.time() - t0
     record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
               "protocol": protocol.name,
-              "frames_compared": int(gen_rgb.shape[0]), "coverage": coverage, "input_key": key,
+              "frames_compared": int(gen_rgb.shape[0]), **facts, "input_key": key,
               "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
               "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}

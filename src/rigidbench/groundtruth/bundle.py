@@ -58,7 +58,7 @@ def no_spec_message(sample_id: str) -> str:
 
 def refuse_imported(bundle_dirs_: list[Path], what: str) -> None:
     """BundleError (one line, before any work) when ``what`` needs scene specs and a bundle was imported."""
-    imported = [Path(d).name for d in bundle_dirs_ if _imported(Path(d)) and not (Path(d) / SPEC_FILE).is_file()]
+    imported = [Path(d).name for d in bundle_dirs_ if is_imported(Path(d)) and not (Path(d) / SPEC_FILE).is_file()]
     if imported:
         raise BundleError(f"{what}, which needs each example's scene spec; {len(imported)} of the selected examples "
                           f"(e.g. {imported[0]}) were imported from the published set, which ships none. Use bundles "
@@ -174,7 +174,7 @@ def repair_hint(bundle_dir: str | Path) -> str:
     without a readable metadata.json and no scene spec) or re-render it (our renders)."""
     bundle_dir = Path(bundle_dir)
     sample_id, split, root = bundle_dir.name, bundle_dir.parent.name, bundle_dir.parent.parent
-    imported = _imported(bundle_dir)
+    imported = is_imported(bundle_dir)
     if not imported and not (bundle_dir / SPEC_FILE).is_file():
         try:
             json.loads((bundle_dir / METADATA_FILE).read_text())
@@ -560,7 +560,8 @@ def _check_array(problems: list[str], file: str, data: _NpzView, key: str, shape
     return got_shape
 
 
-def _imported(path: Path) -> bool:
+def is_imported(path: Path) -> bool:
+    """A bundle imported from a published set (its metadata has ``source``); False when unreadable."""
     try:
         meta = json.loads((path / METADATA_FILE).read_text())
     except READ_ERRORS:
@@ -579,7 +580,7 @@ def check_bundle(path: str | Path, check_video: bool = True, deep: bool = True) 
     if not path.is_dir():
         return [f"{path}: bundle directory does not exist"]
     problems: list[str] = []
-    imported = _imported(path)
+    imported = is_imported(path)
     for name in BUNDLE_FILES:
         if not (imported and name == SPEC_FILE):  # an imported bundle has no scene spec
             _check(problems, (path / name).is_file(), f"{name}: missing")
@@ -711,4 +712,4 @@ __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_
            "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
            "slice_trajectory", "camera_metadata", "make_metadata", "prepare_tmp", "commit", "Sample",
            "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "refuse_imported", "READ_ERRORS",
-           "read_bundle_file", "damaged_error", "repair_hint"]
+           "read_bundle_file", "damaged_error", "repair_hint", "is_imported"]

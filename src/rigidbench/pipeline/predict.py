@@ -449,7 +449,7 @@ def _dry_run(predictor: Predictor, refs: list[Path], out_dir: Path, settings: di
              summary: PredictSummary) -> PredictSummary:
     """Print the request of every example that a real run would generate; send and write nothing."""
     previous = PredictionsFolder(out_dir).settings
-    same = previous.exists() and json.loads(previous.read_text()) == settings
+    same = _read_settings(previous) == settings
     for ref in refs:
         if same and any((out_dir / f"{ref.name}{ext}").exists() for ext in VIDEO_EXTENSIONS):
             summary.skipped.append(ref.name)

@@ -67,15 +67,15 @@ def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str | No
     for row in rows:
         path = bundle_dir(data_dir, row)
         if path.is_dir():
-            meta = _metadata(path)
-            if meta.get("source"):
+            if B.is_imported(path):
                 raise UserError(f"{path.parent} holds bundles imported from the published set (e.g. {path.name}); "
                                 "`render` does not overwrite them: render into another --data")
             problems = B.check_bundle(path, deep=False)
-            if not problems and (preset is None or meta.get("preset") == preset):
+            rendered_at = _metadata(path).get("preset")
+            if not problems and (preset is None or rendered_at == preset):
                 continue
             why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
-                   f"was rendered at the '{meta.get('preset')}' preset, not '{preset}'")
+                   f"was rendered at the '{rendered_at}' preset, not '{preset}'")
             log.warning("example %s: the bundle in %s %s; rendering it again", row.sample_id, path, why)
             shutil.rmtree(path)
         shutil.rmtree(path.with_name(f".{path.name}.tmp"), ignore_errors=True)  # a killed render's leftovers

@@ -287,12 +287,6 @@ class _RecentPredictions:
 
     MAX_PAGES = 20  # Replicate lists 100 per page
 
-    MAX_PAGES = 20  # Replicate lists 100 per page
-
-    MAX_PAGES = 20  # Replicate lists 100 per page
-
-    MAX_PAGES = 20  # Replicate lists 100 per page
-
     def __init__(self, client: ReplicateClient):
         self.client = client
         self.items: list[dict] = []

@@ -56,7 +56,6 @@ from .local import LocalVideoModel, dtype_kwarg
 log = logging.getLogger(__name__)
 
 ADAPTER_NAME = "checkpoint"
-LORA_MARKERS = (".lora_A.", ".lora_B.", ".lora_down.", ".lora_up.", "lora_A.weight", "lora_B.weight")
 PEFT_PREFIX = "base_model.model."
 ORIGINAL_PREFIX = "diffusion_model."
 #: module names of the original Wan code (DiffSynth too) that diffusers renames (attn1.to_q, ffn.net.0.proj, ...)
@@ -76,17 +75,6 @@ _FINGERPRINTS: dict[tuple, dict] = {}  # (path, size, mtime) -> fingerprint, so 
 
 class CheckpointError(UserError):
     """A ``checkpoint`` option that cannot be used; names the path and what was expected."""
-
-
-def _safetensors_keys(path: Path) -> list[str]:
-    from safetensors import safe_open
-
-    with safe_open(str(path), framework="pt") as f:
-        return list(f.keys())
-
-
-def _is_lora(keys) -> bool:
-    return any(any(marker in k for marker in LORA_MARKERS) or k.endswith(".alpha") for k in keys)
 
 
 def detect_checkpoint(path: str | Path) -> dict[str, Any]:

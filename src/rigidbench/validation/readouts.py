@@ -95,7 +95,8 @@ def readout_rows(samples: list, severities: np.ndarray, with_rendered: bool, net
 
 
 def _rows_for(mode: str, severity: float, sample, r: dict, bundle) -> list[dict]:
-    base = {"mode": mode, "severity": severity, "example": sample.sample_id, "task": sample.task}
+    base = {"mode": mode, "severity": severity, "example": sample.sample_id, "task": sample.task,
+            "fps": float(sample.fps)}
     if mode in TIME_MODES:
         return [{**base, "readout": "speed", "measured": r["speed"]["value"], "truth": TIME_MODES[mode](severity)}]
     if mode == "delayed":
@@ -170,7 +171,7 @@ def readout_summary_lines(rows: list[dict]) -> list[str]:
                 errs = [abs(r["measured"] / r["truth"] - 1) for r in sel]
                 text = f"{100 * max(errs):.2f}%"
             elif unit == "frames":
-                errs = [abs(r["measured"] - r["truth"]) * 24 for r in sel]
+                errs = [abs(r["measured"] - r["truth"]) * r["fps"] for r in sel]
                 text = f"{max(errs):.2f} frames"
             else:
                 errs = [abs(r["measured"] - r["truth"]) for r in sel]
