@@ -9,6 +9,8 @@ work (resume), records failures, shows progress and writes the run-level summary
 example gives the same files whichever executor ran it.
 
 - ``LocalExecutor``: one worker in this process, items one after another (or ``threads`` at once).
+- ``ProcessExecutor``: each item in its own fresh child Python process, ``workers`` at once, so a crash
+  (Blender's, a segfault) loses only that item; progress comes back on a pipe (the render stage's pool).
 - ``RayExecutor``: Ray actors (a worker each, so a model loads once per actor) with the resources
   the stage asks for (``num_gpus=1`` for a GPU model, CPUs for rendering), ``max_restarts`` and
   ``max_task_retries`` so an example whose worker died runs again elsewhere, and a bounded number
@@ -16,14 +18,20 @@ example gives the same files whichever executor ran it.
 - ``Shard(i, n)``: not an executor but a selection: the i-th of n deterministic, disjoint parts of
   the items (by position in the sorted item list), for job arrays of schedulers without Ray.
 
+Workers are normally ``driver.ItemRunner`` (the stage driver's per-item commit around a stage's worker),
+called as ``worker(item, progress=f)`` when the caller asks for progress (``on_progress``).
+
 A worker's ``__call__`` raises only for bugs: it returns ``{"status": "failed", "error": ...}`` for
 an example whose input is bad (a ``RigidBenchError`` or an I/O error), like the local loops do.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import signal
+import sys
 from abc import ABC, abstractmethod
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -35,6 +43,7 @@ from .registry import load_target
 log = logging.getLogger(__name__)
 
 EXECUTORS = ("local", "ray")
+ProgressHook = Callable[[Any, int, int], None]
 
 
 @dataclass(frozen=True)
@@ -81,10 +90,13 @@ class Executor(ABC):
 
     @abstractmethod
     def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
-            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None,
+            on_progress: ProgressHook | None = None) -> list[tuple[Any, dict]]:
         """Run ``worker`` ("module:Class", built as Class(job)) on every item; ``on_result(item, record)`` is
         called on this process as each finishes. ``instance``: a ready worker a local executor uses instead
-        (it may hold objects that cannot travel, e.g. models a test built)."""
+        (it may hold objects that cannot travel, e.g. models a test built). ``on_progress(item, done,
+        total)``: sub-steps of an item (where the executor can report them), the worker being called as
+        ``worker(item, progress=f)``."""
 
     def close(self) -> None:
         pass
@@ -98,7 +110,8 @@ class LocalExecutor(Executor):
     threads: int = 1
 
     def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
-            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None,
+            on_progress: ProgressHook | None = None) -> list[tuple[Any, dict]]:
         if not items:
             return []
         instance = instance if instance is not None else load_target(worker, "worker")(job)
@@ -106,7 +119,8 @@ class LocalExecutor(Executor):
         try:
             if self.threads <= 1:
                 for item in items:
-                    record = instance(item)
+                    record = (instance(item) if on_progress is None else
+                              instance(item, progress=lambda done, total, item=item: on_progress(item, done, total)))
                     out.append((item, record))
                     if on_result:
                         on_result(item, record)
@@ -177,7 +191,8 @@ class RayExecutor(Executor):
         return max(1, min([n_items] + [f for f in fit if f > 0] or [1]))
 
     def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
-            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None) -> list[tuple[Any, dict]]:
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None,
+            on_progress: ProgressHook | None = None) -> list[tuple[Any, dict]]:
         if not items:
             return []
         ray = self._ray()
@@ -220,11 +235,157 @@ class RayExecutor(Executor):
         return out
 
 
+# -- child processes -----------------------------------------------------------------------------------
+#
+# Each item runs in ``python -c "...; _child_main()"`` (not multiprocessing, whose spawn mode re-imports the
+# caller's __main__). The task comes as one JSON argument; messages come back as JSON lines on a pipe whose
+# descriptor is the second argument, so the worker's own stdout (Blender's) stays separate.
+
+_CHILD_CODE = "from rigidbench.executors import _child_main; _child_main()"
+POLL_S = 0.2
+
+
+def _die_with_parent() -> None:
+    """Linux: have the kernel kill this child when the parent process dies (no orphaned workers)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+def _child_main() -> None:
+    """Child entry: argv = [task JSON, message fd]. Builds the worker, runs one item, sends its record."""
+    _die_with_parent()
+    task = json.loads(sys.argv[1])
+    out = os.fdopen(int(sys.argv[2]), "w", buffering=1)
+
+    def send(*msg: Any) -> None:
+        out.write(json.dumps(msg) + "\n")
+
+    logging.basicConfig(level=logging.WARNING, format=f"%(levelname)s [{task.get('label', '')}] %(name)s: %(message)s")
+    worker = load_target(task["worker"], "worker")(task["job"])
+    try:
+        record = worker(task["item"], progress=lambda done, total: send("progress", int(done), int(total)))
+    finally:
+        close = getattr(worker, "close", None)
+        if close is not None:
+            close()
+    send("result", record)
+
+
+def _exit_reason(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            return f"worker process killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"worker process killed by signal {-code}"
+    return f"worker process exited with code {code} without a result (see the traceback above)"
+
+
+@dataclass
+class _Child:
+    item: Any
+    proc: Any
+    fd: int
+    buffer: bytes = b""
+    record: dict | None = None
+
+
+@dataclass
+class ProcessExecutor(Executor):
+    """Each item in its own child Python process, ``workers`` at a time. A child that dies (a crash inside
+    Blender, a kill) fails only its item. ``quiet`` sends the children's stdout to /dev/null; ``label``
+    names an item in the children's log lines (``label(item)``)."""
+
+    name: str = "processes"
+    workers: int = 1
+    quiet: bool = True
+    label: Callable[[Any], str] | None = None
+
+    def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
+            on_result: Callable[[Any, dict], None] | None = None, instance: Any = None,
+            on_progress: ProgressHook | None = None) -> list[tuple[Any, dict]]:
+        import selectors
+        import subprocess
+
+        if self.workers < 1:
+            raise ValueError(f"workers must be at least 1, got {self.workers}")
+        pending = list(items)
+        running: dict[int, _Child] = {}
+        out: list[tuple[Any, dict]] = []
+        sel = selectors.DefaultSelector()
+
+        def start(item) -> None:
+            r, w = os.pipe()
+            task = {"worker": worker, "job": job, "item": item, "label": self.label(item) if self.label else ""}
+            try:
+                proc = subprocess.Popen([sys.executable, "-c", _CHILD_CODE, json.dumps(task), str(w)],
+                                        pass_fds=(w,), stdin=subprocess.DEVNULL,
+                                        stdout=subprocess.DEVNULL if self.quiet else None)
+            finally:
+                os.close(w)
+            running[r] = _Child(item=item, proc=proc, fd=r)
+            sel.register(r, selectors.EVENT_READ, running[r])
+
+        def handle(child: _Child, line: bytes) -> None:
+            try:
+                msg = json.loads(line)
+            except ValueError:
+                log.warning("unreadable worker message %r", line[:200])
+                return
+            if msg[0] == "progress" and on_progress is not None:
+                on_progress(child.item, int(msg[1]), int(msg[2]))
+            elif msg[0] == "result":
+                child.record = msg[1]
+
+        def finish(child: _Child) -> None:
+            sel.unregister(child.fd)
+            os.close(child.fd)
+            del running[child.fd]
+            code = child.proc.wait()
+            record = child.record if child.record is not None else {"status": "failed", "error": _exit_reason(code)}
+            out.append((child.item, record))
+            if on_result:
+                on_result(child.item, record)
+
+        try:
+            while pending or running:
+                while pending and len(running) < self.workers:
+                    start(pending.pop(0))
+                for key, _ in sel.select(timeout=POLL_S):
+                    child = key.data
+                    chunk = os.read(child.fd, 65536)
+                    if not chunk:  # the child closed its end: it has exited (or is exiting)
+                        if child.buffer.strip():
+                            handle(child, child.buffer)
+                        finish(child)
+                        continue
+                    child.buffer += chunk
+                    *lines, child.buffer = child.buffer.split(b"\n")
+                    for line in lines:
+                        if line.strip():
+                            handle(child, line)
+        except KeyboardInterrupt:
+            for child in running.values():
+                child.proc.terminate()
+            for child in running.values():
+                child.proc.wait(5)
+            raise
+        finally:
+            for child in list(running.values()):
+                os.close(child.fd)
+            sel.close()
+        return out
+
+
 def make_executor(name: str = "local", *, ray_address: str | None = None, threads: int = 1,
                   workers: int | None = None) -> Executor:
-    """The executor ``--executor`` names ("local" or "ray")."""
+    """The executor ``--executor`` names ("local", "processes" or "ray")."""
     if name == "local":
         return LocalExecutor(threads=threads)
+    if name == "processes":
+        return ProcessExecutor(workers=workers or 1)
     if name == "ray":
         return RayExecutor(address=ray_address, workers=workers)
     raise UserError(f"--executor {name}: choose one of {', '.join(EXECUTORS)}")
@@ -235,5 +396,5 @@ def failure_record(exc: BaseException) -> dict:
     return {"status": "failed", "error": str(exc)}
 
 
-__all__ = ["EXECUTORS", "Executor", "LocalExecutor", "RayExecutor", "Resources", "Shard", "failure_record",
+__all__ = ["EXECUTORS", "Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "Resources", "Shard", "failure_record",
            "make_executor"]

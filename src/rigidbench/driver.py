@@ -1,0 +1,450 @@
+"""The stage driver: the one place that decides which examples a stage runs, whether one is already done,
+how its output is committed, how a failure is recorded, what progress shows and what the run prints.
+
+A *stage* (simulate, render, predict, evaluate, preprocess, probe extract, probe intervene) declares:
+
+- ``name`` and ``root``: its output folder (a split of bundles, a predictions folder, a run folder, a cache);
+- ``items()``: every candidate example, ``{id: payload}`` in a fixed order (the payload is JSON: what a
+  worker needs besides the job, e.g. a manifest row);
+- ``key(id, payload)``: a hash of the inputs and settings that determine the example's output;
+- ``worker`` ("module:Class", a ``StageWorker``) and ``job()``: what builds the worker, in this process, in a
+  child process or on a Ray actor;
+- optionally ``resources``, ``prepare(todo)``, ``intact(id)`` and ``adopt(id, payload, key)``.
+
+The driver (``run_stage``) then:
+
+1. **selects** with a ``Selection`` (ids, limit, shard; an unknown id is one UserError);
+2. **decides** per example from its *ledger entry*, ``ROOT/.stages/NAME/<id>.json`` (key, status, error, the
+   worker's result): the same key, succeeded, and the output still ``intact`` -> up to date, skipped; else it
+   runs again, and the run says why (new, settings or inputs changed, failed before, output missing). An
+   output made before ledgers existed is taken over when the stage's ``adopt`` says it was made this way;
+3. **runs** the rest through an executor (this process, local child processes, Ray actors, a shard). On
+   the executor's side, ``ItemRunner`` gives the worker an empty *staging* folder
+   (``ROOT/.stages/NAME/staging/<id>/``; a killed run's leftovers are removed first), and **commits** what
+   the worker wrote there: each output path (relative to ROOT) is renamed into place whole, in the order
+   the worker lists them (the last one is the example's completion mark), then the ledger entry is
+   written, fsynced. A failure (``RigidBenchError`` or ``OSError``: a bad example) writes a failed ledger
+   entry and commits nothing; a bug raises;
+4. **shows progress** (examples, and sub-steps such as rendered frames) and **summarises**: a
+   ``StageReport`` with what ran, what was up to date, what failed and why, and why each was redone.
+
+So a rerun with other settings redoes exactly the examples whose key changed, a killed run resumes from
+the examples it had not committed, and the same example gives the same files whichever executor ran it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ClassVar, Mapping, Sequence
+
+from .atomic import _fsync
+from .errors import EXAMPLE_ERRORS, UserError
+from .executors import Executor, LocalExecutor, Resources, Shard
+from .jsonio import write_json
+from .registry import load_target
+
+log = logging.getLogger(__name__)
+
+LEDGER_DIR = ".stages"  # hidden: bundle listings, validate and evaluate skip it
+STAGING_DIR = "staging"
+RUNNER = "rigidbench.driver:ItemRunner"
+
+Progress = Callable[[int, int], None]
+
+
+def digest(*parts: Any) -> str:
+    """A stable hex key of JSON-serialisable parts (sorted keys; paths and other objects as text)."""
+    text = json.dumps(parts, sort_keys=True, default=str, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# -- selection -----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which examples a stage runs: ``ids`` (in the stage's order), the first ``limit`` of those, then this
+    ``shard``'s part. The one selection rule of every stage."""
+
+    ids: tuple[str, ...] | None = None
+    limit: int | None = None
+    shard: Shard = Shard()
+
+    @classmethod
+    def of(cls, ids: Sequence[str] | None = None, limit: int | None = None, shard: Shard | str | None = None
+           ) -> "Selection":
+        shard = shard if isinstance(shard, Shard) else Shard.parse(shard)
+        return cls(tuple(ids) if ids else None, limit, shard)
+
+    def apply(self, candidates: Sequence[str], where: str) -> list[str]:
+        """The selected ids of ``candidates`` (in their order); an id not among them is a UserError naming
+        ``where`` (the folder or manifest the candidates come from)."""
+        chosen = list(candidates)
+        if self.ids:
+            known = set(chosen)
+            unknown = [i for i in dict.fromkeys(self.ids) if i not in known]
+            if unknown:
+                span = f" (ids run from {chosen[0]} to {chosen[-1]})" if chosen else " (it holds none)"
+                raise UserError(f"unknown example id(s) {', '.join(unknown)} in {where}{span}")
+            wanted = set(self.ids)
+            chosen = [i for i in chosen if i in wanted]
+        if self.limit is not None:
+            chosen = chosen[:self.limit]
+        return self.shard.select(chosen)
+
+
+# -- what a stage declares -----------------------------------------------------------------------------
+
+
+class Stage(ABC):
+    """One stage of the pipeline, as the driver sees it (see the module docstring)."""
+
+    name: ClassVar[str]
+    worker: ClassVar[str]  # "module:Class" of its StageWorker
+    resources: Resources = Resources()
+    unit: ClassVar[str] = "example"
+
+    @property
+    @abstractmethod
+    def root(self) -> Path:
+        """The output folder; the ledger and staging live under ``root/.stages/<name>/``."""
+
+    @abstractmethod
+    def items(self) -> Mapping[str, Any]:
+        """Every candidate example: ``{id: JSON payload}``, in the stage's order."""
+
+    @property
+    def where(self) -> str:
+        """Where the candidates come from, for the unknown-id error."""
+        return str(self.root)
+
+    @abstractmethod
+    def key(self, item_id: str, payload: Any) -> str:
+        """A hash of everything that determines the example's output (EXAMPLE_ERRORS: the example fails)."""
+
+    @abstractmethod
+    def job(self) -> dict:
+        """The JSON description a worker is built from (anywhere: here, a child process, a Ray actor)."""
+
+    def worker_instance(self) -> "StageWorker | None":
+        """A ready worker for an in-process executor (it may hold objects that cannot travel); None: build
+        one from ``job()``."""
+        return None
+
+    def intact(self, item_id: str) -> bool:
+        """Whether the committed output of ``item_id`` is still there and sound (checked before skipping)."""
+        return True
+
+    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+        """An output made before ledgers existed that counts as made with ``key``: its result dict (the
+        ledger entry is then written for it), or None."""
+        return None
+
+    def prepare(self, todo: list[str]) -> None:
+        """Called once before the examples in ``todo`` run (e.g. a preflight check, a shared record)."""
+
+    def finish(self, report: "StageReport") -> None:
+        """Called once after the run, also when it was interrupted (e.g. write the run-level results)."""
+
+
+class StageWorker:
+    """Produces one example's output per call. ``run`` writes the output under ``staging`` with the paths it
+    will have under the stage's root and returns an ``ItemResult``; it raises RigidBenchError or OSError for
+    a bad example (recorded as a failure) and anything else for a bug."""
+
+    def __init__(self, job: dict):
+        self.job = job
+
+    def run(self, item_id: str, payload: Any, staging: Path, progress: Progress) -> "ItemResult":
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        """Start nothing new (a graceful interrupt); optional."""
+
+    def close(self) -> None:
+        """Release what the worker holds (models, sessions)."""
+
+
+@dataclass
+class ItemResult:
+    """What a worker made: ``outputs`` (paths under staging and root, committed in this order, each
+    replaced whole; the last marks the example done) and a small JSON ``result`` for the ledger and the
+    stage's summary. ``status`` other than "succeeded" (e.g. "interrupted") commits nothing and leaves the
+    example to run again."""
+
+    outputs: list[str] = field(default_factory=list)
+    result: dict = field(default_factory=dict)
+    status: str = "succeeded"
+    error: str | None = None
+
+
+# -- the ledger -------------------------------------------------------------------------------------------
+
+
+def stage_dir(root: str | Path, name: str) -> Path:
+    return Path(root) / LEDGER_DIR / name
+
+
+def ledger_path(root: str | Path, name: str, item_id: str) -> Path:
+    return stage_dir(root, name) / f"{item_id}.json"
+
+
+def read_ledger(root: str | Path, name: str, item_id: str) -> dict | None:
+    """The ledger entry of ``item_id``, or None (absent, or damaged: the example then simply runs again)."""
+    path = ledger_path(root, name, item_id)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); the example runs again", path, type(exc).__name__)
+        return None
+    return doc if isinstance(doc, dict) and doc.get("id") == item_id else None
+
+
+def write_ledger(root: str | Path, name: str, item_id: str, key: str, status: str, *, result: dict | None = None,
+                 error: str | None = None, seconds: float | None = None, **extra: Any) -> dict:
+    entry = {"stage": name, "id": item_id, "key": key, "status": status, "error": error,
+             "seconds": None if seconds is None else round(seconds, 3),
+             "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "result": result or {}, **extra}
+    write_json(ledger_path(root, name, item_id), entry, durable=True)
+    return entry
+
+
+def staging_path(root: str | Path, name: str, item_id: str) -> Path:
+    return stage_dir(root, name) / STAGING_DIR / item_id
+
+
+def fresh_staging(root: str | Path, name: str, item_id: str) -> Path:
+    """An empty staging folder for ``item_id`` (a killed run's leftovers there are removed first)."""
+    path = staging_path(root, name, item_id)
+    if path.exists() or path.is_symlink():
+        shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+    path.mkdir(parents=True)
+    return path
+
+
+def commit(staging: Path, root: Path, outputs: Sequence[str]) -> None:
+    """Rename each of ``outputs`` from ``staging`` into ``root``, in order, each replacing whatever was at
+    its path (a directory whole: the old one is moved aside first and removed after)."""
+    for rel in outputs:
+        rel_path = Path(rel)
+        if rel_path.is_absolute() or ".." in rel_path.parts:
+            raise ValueError(f"output path {rel!r} must be relative to the stage's root")
+        src, dst = staging / rel_path, root / rel_path
+        if not (src.exists() or src.is_symlink()):
+            raise FileNotFoundError(f"{src}: the worker listed this output but did not write it")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if src.is_dir() and not src.is_symlink():
+            if dst.exists() or dst.is_symlink():
+                old = dst.with_name(f".{dst.name}.old-{os.getpid()}")
+                shutil.rmtree(old, ignore_errors=True)
+                dst.rename(old)
+                src.rename(dst)
+                shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
+            else:
+                src.rename(dst)
+        else:
+            if src.is_file():
+                _fsync(src)
+            if dst.is_dir() and not dst.is_symlink():
+                shutil.rmtree(dst)
+            src.replace(dst)
+
+
+class ItemRunner:
+    """What an executor calls per example, wherever it runs: builds the stage's worker from the job, runs
+    it into a fresh staging folder, commits the outputs and writes the ledger entry. Task: ``{"id",
+    "payload", "key"}``; returns the ledger entry."""
+
+    def __init__(self, job: dict, instance: StageWorker | None = None):
+        self.stage, self.root = job["stage"], Path(job["root"])
+        self.worker = instance if instance is not None else load_target(job["worker"], "stage worker")(job["job"])
+
+    def __call__(self, task: dict, progress: Progress | None = None) -> dict:
+        item_id, key = task["id"], task["key"]
+        started = time.time()
+        staging = None
+        try:
+            staging = fresh_staging(self.root, self.stage, item_id)
+            made = self.worker.run(item_id, task.get("payload"), staging, progress or (lambda done, total: None))
+            if made.status == "succeeded":
+                commit(staging, self.root, made.outputs)
+                return write_ledger(self.root, self.stage, item_id, key, "succeeded", result=made.result,
+                                    seconds=time.time() - started)
+            entry = {"stage": self.stage, "id": item_id, "key": key, "status": made.status, "error": made.error,
+                     "result": made.result, "seconds": round(time.time() - started, 3)}
+            if made.status == "failed":
+                return write_ledger(self.root, self.stage, item_id, key, "failed", result=made.result,
+                                    error=made.error, seconds=time.time() - started)
+            return entry  # interrupted: nothing recorded, the example runs again
+        except EXAMPLE_ERRORS as exc:
+            error = str(exc) or type(exc).__name__
+            return write_ledger(self.root, self.stage, item_id, key, "failed", error=error,
+                                seconds=time.time() - started)
+        finally:
+            if staging is not None:
+                shutil.rmtree(staging, ignore_errors=True)
+
+    def stop(self) -> None:
+        self.worker.stop()
+
+    def close(self) -> None:
+        self.worker.close()
+
+
+# -- the run ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class StageReport:
+    """What a stage run did. ``selected``: the ids, in order; ``ran``: committed now; ``reused``: up to date
+    (skipped); ``failed``: id -> reason; ``redone``: id -> why an earlier output was not reused;
+    ``results``: id -> the worker's result (ran and reused); ``interrupted``: ids stopped before they ran."""
+
+    stage: str
+    root: Path
+    selected: list[str] = field(default_factory=list)
+    ran: list[str] = field(default_factory=list)
+    reused: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    redone: dict[str, str] = field(default_factory=dict)
+    results: dict[str, dict] = field(default_factory=dict)
+    interrupted: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def succeeded(self) -> list[str]:
+        """Selected ids with a committed output (ran now or up to date), in selection order."""
+        ok = set(self.ran) | set(self.reused)
+        return [i for i in self.selected if i in ok]
+
+    def line(self, unit: str = "example") -> str:
+        """One line: how many ran, were up to date, failed, of how many."""
+        parts = [f"{len(self.ran)} done", f"{len(self.reused)} up to date", f"{len(self.failed)} failed"]
+        if self.interrupted:
+            parts.append(f"{len(self.interrupted)} not started")
+        return f"{self.stage}: {', '.join(parts)} of {len(self.selected)} {unit}s -> {self.root}"
+
+    def to_json(self) -> dict:
+        return {"stage": self.stage, "root": str(self.root), "selected": len(self.selected), "ran": self.ran,
+                "reused": self.reused, "failed": self.failed, "redone": self.redone,
+                "interrupted": self.interrupted, "seconds": round(self.seconds, 3)}
+
+
+def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: StageReport) -> list[dict]:
+    """The tasks still to run: every selected id whose ledger entry does not show a committed output with
+    the same key (the driver's one resume rule); fills ``report.reused``, ``.failed`` (a key that cannot be
+    computed) and ``.redone``."""
+    todo = []
+    for item_id in ids:
+        payload = items[item_id]
+        try:
+            key = stage.key(item_id, payload)
+        except EXAMPLE_ERRORS as exc:
+            report.failed[item_id] = str(exc)
+            log.warning("%s: example %s failed: %s", stage.name, item_id, exc)
+            continue
+        entry = read_ledger(stage.root, stage.name, item_id)
+        why = None
+        if entry is None:
+            adopted = stage.adopt(item_id, payload, key)
+            if adopted is not None:
+                write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted, adopted=True)
+                report.reused.append(item_id)
+                report.results[item_id] = adopted
+                continue
+        elif entry.get("key") != key:
+            why = "its inputs or settings changed"
+        elif entry.get("status") != "succeeded":
+            why = f"it failed before ({entry.get('error') or 'no reason recorded'})"
+        elif not stage.intact(item_id):
+            why = "its output is missing or damaged"
+        else:
+            report.reused.append(item_id)
+            report.results[item_id] = entry.get("result") or {}
+            continue
+        if why is not None:
+            report.redone[item_id] = why
+        todo.append({"id": item_id, "payload": payload, "key": key})
+    return todo
+
+
+def run_stage(stage: Stage, selection: Selection = Selection(), executor: Executor | None = None,
+              progress: bool = True, on_result: Callable[[str, dict], None] | None = None) -> StageReport:
+    """Run ``stage`` on the selected examples (see the module docstring); returns the report. ``on_result(id,
+    ledger entry)`` is called on this process as each example finishes (e.g. to update a shared record)."""
+    from tqdm import tqdm
+
+    started = time.time()
+    items = stage.items()
+    ids = selection.apply(list(items), stage.where)
+    report = StageReport(stage.name, stage.root, selected=ids)
+    todo = plan(stage, ids, items, report)
+    if report.reused:
+        log.info("%s: %d of %d selected %ss are up to date in %s; skipping them", stage.name, len(report.reused),
+                 len(ids), stage.unit, stage.root)
+    changed = [i for i, why in report.redone.items() if why == "its inputs or settings changed"]
+    if changed:
+        log.warning("%s: %d %s(s) made with other inputs or settings are made again: %s", stage.name, len(changed),
+                    stage.unit, ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else ""))
+    executor = executor or LocalExecutor()
+    bar = tqdm(total=len(todo), unit=stage.unit, desc=stage.name, disable=not progress or not todo, position=0)
+    sub: dict[str, Any] = {"bar": None, "done": {}}
+
+    def on_progress(task: dict, done: int, total: int) -> None:
+        if not progress:
+            return
+        if sub["bar"] is None:
+            sub["bar"] = tqdm(total=len(todo) * total, unit="step", desc=f"{stage.name} steps", position=1)
+        step = done - sub["done"].get(task["id"], 0)
+        sub["done"][task["id"]] = done
+        sub["bar"].update(step)
+
+    def collect(task: dict, entry: dict) -> None:
+        item_id = task["id"]
+        status = entry.get("status")
+        if status == "succeeded":
+            report.ran.append(item_id)
+            report.results[item_id] = entry.get("result") or {}
+        elif status == "failed":
+            report.failed[item_id] = entry.get("error") or "failed"
+            bar.write(f"FAILED {item_id}: {report.failed[item_id]}")
+        else:
+            report.interrupted.append(item_id)
+        bar.update(1)
+        if on_result is not None:
+            on_result(item_id, entry)
+
+    job = {"stage": stage.name, "root": str(Path(stage.root).resolve()), "worker": stage.worker, "job": stage.job()}
+    try:
+        if todo:
+            stage_dir(stage.root, stage.name).mkdir(parents=True, exist_ok=True)
+            stage.prepare([t["id"] for t in todo])
+            instance = stage.worker_instance() if isinstance(executor, LocalExecutor) else None
+            runner = ItemRunner(job, instance) if isinstance(executor, LocalExecutor) else None
+            executor.map(RUNNER, job, todo, stage.resources, on_result=collect, instance=runner,
+                         on_progress=on_progress)
+    finally:
+        bar.close()
+        if sub["bar"] is not None:
+            sub["bar"].close()
+        finished = set(report.ran) | set(report.failed) | set(report.interrupted)
+        report.interrupted += [t["id"] for t in todo if t["id"] not in finished and t["id"] not in report.interrupted]
+        report.ran.sort(key=ids.index)
+        report.seconds = time.time() - started
+        stage.finish(report)
+    return report
+
+
+__all__ = ["ItemResult", "ItemRunner", "LEDGER_DIR", "Selection", "Stage", "StageReport", "StageWorker", "commit",
+           "digest", "fresh_staging", "ledger_path", "plan", "read_ledger", "run_stage", "stage_dir",
+           "staging_path", "write_ledger"]
