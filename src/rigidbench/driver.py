@@ -340,10 +340,11 @@ class StageReport:
                 "interrupted": self.interrupted, "seconds": round(self.seconds, 3)}
 
 
-def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: StageReport) -> list[dict]:
+def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: StageReport,
+         write: bool = True) -> list[dict]:
     """The tasks still to run: every selected id whose ledger entry does not show a committed output with
     the same key (the driver's one resume rule); fills ``report.reused``, ``.failed`` (a key that cannot be
-    computed) and ``.redone``."""
+    computed) and ``.redone``. ``write=False`` (a dry run) writes no ledger entry for adopted outputs."""
     todo = []
     for item_id in ids:
         payload = items[item_id]
@@ -358,7 +359,8 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
         if entry is None:
             adopted = stage.adopt(item_id, payload, key)
             if adopted is not None:
-                write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted, adopted=True)
+                if write:
+                    write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted, adopted=True)
                 report.reused.append(item_id)
                 report.results[item_id] = adopted
                 continue
