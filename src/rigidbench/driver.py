@@ -391,6 +391,10 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
     ids = selection.apply(list(items), stage.where)
     report = StageReport(stage.name, stage.root, selected=ids)
     todo = plan(stage, ids, items, report)
+    for item_id in report.reused:  # a killed run's leftovers of an example that is done after all
+        leftover = staging_path(stage.root, stage.name, item_id)
+        if leftover.exists():
+            shutil.rmtree(leftover, ignore_errors=True)
     if report.reused:
         log.info("%s: %d of %d selected %ss are up to date in %s; skipping them", stage.name, len(report.reused),
                  len(ids), stage.unit, stage.root)

@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 import published_set as ps  # noqa: E402
 
 from rigidbench.config import registry  # noqa: E402
+from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.datasets.importer import find_published_root, import_published  # noqa: E402
 from rigidbench.errors import BundleError, UserError  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle, resolve_split_dir  # noqa: E402
@@ -146,6 +147,31 @@ def test_a_rerun_skips_unchanged_and_redoes_changed_samples(tmp_path):
     assert not (tmp_path / "data" / "eval" / ".00000.tmp").exists()
 
 
+def test_import_resumes_on_the_stage_driver(tmp_path):
+    """A killed import (staging left behind, one sample without its ledger entry) resumes; another dataset
+    identity re-imports every sample and says why; a bundle imported before ledgers existed is adopted."""
+    root = ps.write_set(tmp_path / "src", ps.DEFAULT_SAMPLES[:2])
+    split = tmp_path / "data" / "eval"
+    clean = import_published(root, tmp_path / "clean", progress=False)
+    first = import_published(root, tmp_path / "data", progress=False, dataset={"dataset": "a"})
+    assert first.imported == ["00000", "00001"]
+    ledger_path(split, "import", "00001").unlink()  # the kill: 00001 was written, its entry was not
+    staging = staging_path(split, "import", "00000")
+    staging.mkdir(parents=True)
+    (staging / "half-written.npz").write_bytes(b"x")
+    stamp = (split / "00000" / "tracks.npz").stat().st_mtime_ns
+    again = import_published(root, tmp_path / "data", progress=False, dataset={"dataset": "a"})
+    assert again.unchanged == ["00000", "00001"] and not again.imported  # 00001 adopted: same source digest
+    assert not staging.exists() and (split / "00000" / "tracks.npz").stat().st_mtime_ns == stamp
+    other = import_published(root, tmp_path / "data", progress=False, dataset={"dataset": "b"})
+    assert other.imported == ["00000", "00001"]
+    assert json.loads((split / "00000" / "metadata.json").read_text())["source"]["dataset"] == "b"
+    for name in ("masks.npz", "depth.npz", "trajectories.npz", "tracks.npz"):
+        a, b = np.load(split / "00001" / name), np.load(tmp_path / "clean" / "eval" / "00001" / name)
+        assert all(np.array_equal(a[k], b[k]) for k in b.files)
+    assert clean.imported == ["00000", "00001"]
+
+
 @pytest.mark.parametrize("damage", ["masks.npz", "depth.npz", "trajectories.npz", "metadata.json"])
 def test_one_damaged_sample_fails_alone_with_its_file_named(tmp_path, damage):
     root = ps.write_set(tmp_path / "src")
@@ -155,7 +181,10 @@ def test_one_damaged_sample_fails_alone_with_its_file_named(tmp_path, damage):
     assert summary.imported == ["00000", "00002"] and list(summary.failed) == ["00001"]
     assert damage in summary.failed["00001"] and "extract the archive again" in summary.failed["00001"]
     assert not (tmp_path / "data" / "eval" / "00001").exists()
-    assert not list((tmp_path / "data" / "eval").glob(".*"))
+    # no temporaries: only the stage ledger (which records the failure) is hidden there
+    assert [p.name for p in (tmp_path / "data" / "eval").glob(".*")] == [".stages"]
+    assert not any((tmp_path / "data" / "eval" / ".stages" / "import" / "staging").iterdir())
+    assert read_ledger(tmp_path / "data" / "eval", "import", "00001")["status"] == "failed"
 
 
 def test_commands_refuse_the_published_layout_with_the_import_hint(published, tmp_path):

@@ -43,7 +43,7 @@ def cmd_download(args, ctx) -> int:
     extracted = download_dataset(desc, args.data, keep_archive=args.keep_archive, verify=not args.no_verify)
     verified = bool((read_marker(desc, args.data) or {}).get("md5_verified"))
     summary = import_published(extracted, args.data, dataset=_identity(desc, verified),
-                               registry=ctx.registry)
+                               registry=ctx.registry, config_dirs=ctx.config_dirs)
     return _finish(summary, Path(args.data))
 
 
@@ -91,7 +91,7 @@ def cmd_import(args, ctx) -> int:
             safe_extract(parts, dest, archive=PART_NAME.sub("", parts[0].name))
         src = dest
     summary = import_published(src, args.data, dataset=_identity(desc, False), registry=ctx.registry,
-                               ids=args.ids)
+                               config_dirs=ctx.config_dirs, ids=args.ids)
     return _finish(summary, Path(args.data))
 
 

@@ -20,9 +20,10 @@ or ``eval/<id>/``, perhaps under a top folder; per sample ``frames/`` and/or ``v
   published PNG already is one, converted otherwise, decoded from ``video.mp4`` when ``frames/`` is
   absent; ``video.mp4`` linked when it is H.264 with every frame, encoded from the frames otherwise.
 
-Each sample is built in a temporary sibling and renamed into place, and records a digest of its
-source files, so an interrupted import resumes without redoing finished samples, a rerun skips
-what is unchanged, and one damaged sample is reported without stopping the others. The scene spec
+The import is a stage on the stage driver (``driver.py``): each sample is built in the stage's staging
+folder and renamed into place, keyed by a digest of its source files (and the conversion's version and the
+dataset identity), so an interrupted import resumes without redoing finished samples, a rerun skips what
+is unchanged, and one damaged sample is reported without stopping the others. The scene spec
 cannot be rebuilt from the archive: imported bundles have none, and the commands that need one
 (re-simulated predictors, ``validate-metrics --with-rendered``) say so.
 """
@@ -41,6 +42,8 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from .. import __version__
+from ..config import registry as load_registry
+from ..driver import ItemResult, Selection, Stage, StageWorker, digest as driver_digest, run_stage
 from ..errors import EXAMPLE_ERRORS, BundleError, UserError
 from ..groundtruth import bundle as B
 from ..groundtruth import camera_model as cm
@@ -387,6 +390,7 @@ def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=
 
 
 def _is_current(final: Path, digest: str) -> bool:
+    """A bundle imported before the stage ledger existed, from these very source files."""
     try:
         meta = json.loads((final / B.METADATA_FILE).read_text())
     except (OSError, ValueError):
@@ -395,70 +399,99 @@ def _is_current(final: Path, digest: str) -> bool:
         and not B.check_bundle(final, check_video=False)
 
 
-def _replace(tmp: Path, final: Path) -> None:
-    """Move a complete bundle into place, replacing an outdated one."""
-    if final.exists():
-        old = final.with_name(f".{final.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(final, old)
-        os.replace(tmp, final)
-        shutil.rmtree(old)
-    else:
-        os.replace(tmp, final)
+class ImportWorker(StageWorker):
+    """Converts one published sample (payload: its folder and manifest row) into ``<id>/`` in staging."""
+
+    def __init__(self, job: dict, registry=None):
+        super().__init__(job)
+        self.registry = registry if registry is not None else load_registry(job["config_dirs"])
+
+    def run(self, item_id: str, payload: dict, staging: Path, progress) -> ItemResult:
+        folder = Path(payload["folder"])
+        (staging / item_id).mkdir()
+        try:
+            convert_sample(folder, staging / item_id, item_id, payload["row"], registry=self.registry,
+                           dataset=self.job["dataset"], digest=payload["digest"])
+        except EXAMPLE_ERRORS:
+            raise
+        except (ValueError, KeyError, TypeError) as exc:  # a malformed published file we did not foresee
+            raise BundleError(f"{folder}: cannot be converted ({exc!r}); extract the archive again") from None
+        problems = B.check_bundle(staging / item_id)
+        if problems:
+            raise BundleError(f"{folder}: the imported bundle fails its check: {'; '.join(problems[:3])}")
+        return ItemResult(outputs=[item_id], result={"digest": payload["digest"]})
+
+
+class ImportStage(Stage):
+    """``rigidbench import`` on the stage driver: one published sample per item into ``DATA/eval/<id>/``,
+    keyed by a digest of its source files, the conversion's version and the dataset identity recorded."""
+
+    name = "import"
+    worker = "rigidbench.datasets.importer:ImportWorker"
+
+    def __init__(self, root: Path, split_dir: Path, samples, dataset: dict | None, registry, config_dirs=()):
+        self.source_root, self.split_dir = root, split_dir
+        self.samples = {sample_id: (folder, row) for sample_id, folder, row in samples}
+        self.dataset, self.registry, self.config_dirs = dataset or {}, registry, config_dirs
+        self._digests: dict[str, str] = {}
+
+    @property
+    def root(self) -> Path:
+        return self.split_dir
+
+    @property
+    def where(self) -> str:
+        return str(self.source_root)
+
+    def items(self):
+        return {sample_id: {"folder": str(folder), "row": row} for sample_id, (folder, row) in self.samples.items()}
+
+    def key(self, item_id, payload):
+        digest = self._digests.get(item_id) or source_digest(Path(payload["folder"]))
+        self._digests[item_id] = payload["digest"] = digest
+        return driver_digest("import", DIGEST_VERSION, digest, self.dataset)
+
+    def job(self):
+        return {"dataset": self.dataset, "config_dirs": [str(d) for d in self.config_dirs]}
+
+    def worker_instance(self):
+        return ImportWorker(self.job(), registry=self.registry)
+
+    def intact(self, item_id):
+        return (self.split_dir / item_id).is_dir() and not B.check_bundle(self.split_dir / item_id, check_video=False)
+
+    def adopt(self, item_id, payload, key):
+        digest = self._digests[item_id]
+        return {"digest": digest} if _is_current(self.split_dir / item_id, digest) else None
 
 
 def import_published(src: str | Path, data: str | Path, *, dataset: dict | None = None, registry=None,
                      ids: list[str] | None = None, progress: bool = True,
-                     on_sample: Callable[[str, str], None] | None = None) -> ImportSummary:
-    """Convert every published sample under ``src`` into ``data/eval/<id>/``; ``dataset`` is the identity
-    recorded in each bundle's ``source`` (``DatasetDescription.identity()``). Resumable; per-sample failures are
-    collected in the summary, never raised."""
-    from tqdm import tqdm
-
+                     on_sample: Callable[[str, str], None] | None = None, config_dirs=()) -> ImportSummary:
+    """Convert every published sample under ``src`` into ``data/eval/<id>/`` on the stage driver; ``dataset``
+    is the identity recorded in each bundle's ``source`` (``DatasetDescription.identity()``). Resumable: a
+    sample whose source files, conversion and identity are unchanged is skipped; per-sample failures are
+    collected in the summary, never raised. ``config_dirs``: what a worker elsewhere rebuilds ``registry``
+    from (this process uses ``registry`` itself)."""
     root = find_published_root(Path(src))
     samples = published_samples(root)
-    if ids:
-        unknown = sorted(set(ids) - {s[0] for s in samples})
-        if unknown:
-            raise UserError(f"unknown sample id(s) {', '.join(unknown)} in {root}")
-        samples = [s for s in samples if s[0] in set(ids)]
     split_dir = Path(data) / "eval"
     split_dir.mkdir(parents=True, exist_ok=True)
     if split_dir.resolve() == (root / "eval").resolve():
         raise UserError(f"--data {data}: the published set itself is there; import into another folder")
-    summary = ImportSummary(root=root, split_dir=split_dir)
-    for stale in split_dir.glob(".*.tmp"):
+    for stale in split_dir.glob(".*.tmp"):  # an interrupted import of an earlier version
         shutil.rmtree(stale, ignore_errors=True)
-    for sample_id, folder, row in tqdm(samples, unit="sample", desc="import", disable=not progress):
-        final = split_dir / sample_id
-        try:
-            digest = source_digest(folder)
-            if final.exists() and _is_current(final, digest):
-                summary.unchanged.append(sample_id)
-                continue
-            tmp = B.prepare_tmp(final)
-            try:
-                convert_sample(folder, tmp, sample_id, row, registry=registry, dataset=dataset, digest=digest)
-                problems = B.check_bundle(tmp)
-                if problems:
-                    raise BundleError(f"{folder}: the imported bundle fails its check: {'; '.join(problems[:3])}")
-                _replace(tmp, final)
-            except BaseException:
-                shutil.rmtree(tmp, ignore_errors=True)
-                raise
-            summary.imported.append(sample_id)
-        except EXAMPLE_ERRORS as exc:
-            summary.failed[sample_id] = str(exc)
-            log.warning("sample %s not imported: %s", sample_id, exc)
-        except (ValueError, KeyError, TypeError) as exc:  # a malformed published file we did not foresee
-            summary.failed[sample_id] = f"{folder}: cannot be converted ({exc!r}); extract the archive again"
-            log.warning("sample %s not imported: %r", sample_id, exc)
-        if on_sample is not None:
-            on_sample(sample_id, "failed" if sample_id in summary.failed else "done")
-    return summary
+    stage = ImportStage(root, split_dir, samples, dataset, registry, config_dirs)
+    report = run_stage(stage, Selection.of(ids), progress=progress,
+                       on_result=None if on_sample is None else
+                       lambda sample_id, entry: on_sample(sample_id, "done" if entry.get("status") == "succeeded"
+                                                          else "failed"))
+    for sample_id, reason in report.failed.items():
+        log.warning("sample %s not imported: %s", sample_id, reason)
+    return ImportSummary(root=root, split_dir=split_dir, imported=list(report.ran), unchanged=list(report.reused),
+                         failed=dict(report.failed))
 
 
-__all__ = ["ImportSummary", "import_published", "convert_sample", "find_published_root", "is_published_root",
+__all__ = ["ImportStage", "ImportSummary", "ImportWorker", "import_published", "convert_sample", "find_published_root", "is_published_root",
            "is_published_sample", "published_samples", "source_digest",
            "NO_HIT_DEPTH", "PUBLISHED_PIXEL_CONVENTION"]
