@@ -101,8 +101,8 @@ def _save_png(pixels: np.ndarray, path: Path) -> None:
 def preview_objects(out: Path, tile: int, samples: int, only: list[str] | None) -> dict:
     import bpy
 
-    from rigidbench.assets.objects import build_object
-    from rigidbench.assets.scenes import build_studio
+    from rigidbench.blender.assets.objects import build_object
+    from rigidbench.blender.assets.scenes import build_studio
     from rigidbench.config import registry
 
     reg = registry()
@@ -162,8 +162,8 @@ def _clear_azimuths(target, distance_m: float, elevation_deg: float, count: int)
 
 
 def preview_scenes(out: Path, width: int, samples: int, only: list[str] | None) -> dict:
-    from rigidbench.assets.objects import build_object
-    from rigidbench.assets.scenes import build_environment
+    from rigidbench.blender.assets.objects import build_object
+    from rigidbench.blender.assets.scenes import build_environment
     from rigidbench.config import registry
 
     reg = registry()
@@ -201,8 +201,8 @@ def preview_scenes(out: Path, width: int, samples: int, only: list[str] | None) 
 def build_timings(only: list[str] | None) -> dict:
     """Milliseconds to build each object and scene: first in the process (textures painted), after a
     factory reset (materials rebuilt from cached textures) and again in the same bpy scene."""
-    from rigidbench.assets.objects import build_object
-    from rigidbench.assets.scenes import build_environment
+    from rigidbench.blender.assets.objects import build_object
+    from rigidbench.blender.assets.scenes import build_environment
     from rigidbench.config import registry
 
     reg = registry()

@@ -19,6 +19,11 @@ objects four at a time on a plain floor under the same studio light as
 
 ``--before-data`` takes bundles of the same example ids rendered by an older checkout (any
 preset) and writes ``before_after/<scene>.jpg``: that first frame beside the new one.
+
+Errors: an example that cannot be rendered (a ``RigidBenchError`` or an I/O error) is logged with its id
+and the reason, the others go on, and the run exits with status 1; an unreadable ``examples.json``, cached
+render in ``--work`` or ``--before-*`` input stops the run with one line naming the file (status 2); any
+other exception is a bug and stops the run with its traceback.
 """
 
 from __future__ import annotations
@@ -30,11 +35,26 @@ import math
 import shutil
 import sys
 import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from rigidbench.errors import EXAMPLE_ERRORS
+from rigidbench import jsonio, manifest
+from rigidbench.blender.assets.objects import build_object
+from rigidbench.blender.assets.scenes import build_studio
+from rigidbench.blender.camera import camera_pose
+from rigidbench.blender.render import (beauty_mode, configure_cycles, render_example, resolve_camera,
+                                       select_device)
+from rigidbench.blender.session import reset_scene
+from rigidbench.config import registry
+from rigidbench.errors import EXAMPLE_ERRORS, RigidBenchError, UserError
+from rigidbench.groundtruth import bundle as B, camera_model as cm
+from rigidbench.groundtruth.contacts import quat_to_matrix
+from rigidbench.groundtruth.tracks import ground_truth_tracks
+from rigidbench.report.gallery import (Event, encode_under, event_frames, example_sheet, font, marker_subset,
+                                       objects_sheet, pick_examples)
+from rigidbench.spec.build import build_scene_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT_DIR = ROOT / "docs" / "gallery"
@@ -42,6 +62,9 @@ MAX_BYTES = 1_000_000
 OBJECTS_PER_RENDER = 4
 THUMB_W = 480
 INDEX_KEYS = ("sample_id", "task", "scene", "surface", "partition", "preset", "events", "camera")  # examples.json
+INFO_KEYS = ("sample_id", "task", "scene", "surface", "partition", "prompt", "fps", "frames", "events", "legend",
+             "preset", "camera")  # info.json of a render in --work
+CAMERA_KEYS = ("azimuth_deg", "distance_m", "target_m")
 
 log = logging.getLogger("make_gallery")
 
@@ -53,20 +76,12 @@ def render_example_events(row, reg, preset, work: Path) -> Path:
     """Render ``row``'s event frames into ``work/<id>/`` (frames/*.png, gt.npz, info.json); reused if done."""
     from PIL import Image
 
-    from rigidbench.blender.camera import camera_pose
-    from rigidbench.blender.render import render_example
-    from rigidbench.groundtruth import bundle as B
-    from rigidbench.groundtruth.camera_model import intrinsics
-    from rigidbench.groundtruth.contacts import quat_to_matrix
-    from rigidbench.groundtruth.tracks import ground_truth_tracks
-    from rigidbench.report.gallery import event_frames, marker_subset
-    from rigidbench.spec.build import build_scene_spec
-
     final = work / row.sample_id
     if (final / "info.json").exists():
         return final
     tmp = work / f".{row.sample_id}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
+    if tmp.exists():  # an interrupted earlier render (a failure to remove it is this example's error)
+        shutil.rmtree(tmp)
     chosen: list = []
 
     def pick(sim):
@@ -82,7 +97,7 @@ def render_example_events(row, reg, preset, work: Path) -> Path:
     traj = B.slice_trajectory(result.simulation.trajectory, T)
     masks = B.masks_from_index(result.index, len(names))
     R_c, t_c = camera_pose(spec.camera)
-    K = intrinsics(spec.camera.lens_mm, spec.camera.sensor_width_mm, *preset.resolution)
+    K = cm.intrinsics(spec.camera.lens_mm, spec.camera.sensor_width_mm, *preset.resolution)
     tracks = ground_truth_tracks(masks, result.depth_m, K, R_c, t_c, quat_to_matrix(traj.quat_wxyz), traj.positions_m,
                                  np.array([b.role == "active" for b in spec.bodies]), seed=spec.seed)
     keep = marker_subset(tracks.actor_index)
@@ -98,20 +113,48 @@ def render_example_events(row, reg, preset, work: Path) -> Path:
             "camera": camera_record(spec.camera)}
     (tmp / "info.json").write_text(json.dumps(info, indent=1))
     Image.open(tmp / "frames" / f"{frames[0]:05d}.png").load()  # the frames were written
-    shutil.rmtree(final, ignore_errors=True)
+    if final.exists():  # a render without its info.json: incomplete
+        shutil.rmtree(final)
     tmp.rename(final)
     return final
 
 
-def example_sheet_bytes(path: Path) -> tuple[bytes, dict]:
+def read_render(path: Path) -> tuple[dict, dict, dict]:
+    """(info.json, gt.npz arrays, RGB frame by frame number) of one example's render in ``path``
+    (``render_example_events``); UserError naming the file when one is missing or damaged."""
     from PIL import Image
 
-    from rigidbench.report.gallery import Event, example_sheet, encode_under
+    def unreadable(what: Path, exc: Exception) -> UserError:
+        return UserError(f"{what}: the cached render of example {path.name} cannot be read ({exc}); "
+                         f"delete {path} to render it again")
 
-    info = json.loads((path / "info.json").read_text())
-    gt = np.load(path / "gt.npz")
-    frames = {f: np.asarray(Image.open(path / "frames" / f"{f:05d}.png").convert("RGB")) for f in info["frames"]}
-    events = [Event(int(f), str(label)) for f, label in info["events"]]
+    try:
+        info = json.loads((path / "info.json").read_text())
+        missing = [k for k in INFO_KEYS if k not in info]
+        if missing:
+            raise KeyError(f"no {', '.join(missing)}")
+        info["frames"] = [int(f) for f in info["frames"]]
+        info["events"] = [[int(f), str(label)] for f, label in info["events"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise unreadable(path / "info.json", exc) from exc
+    try:
+        with np.load(path / "gt.npz") as npz:
+            gt = {k: npz[k] for k in ("masks", "depth", "tracks", "visibility", "actor_index")}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise unreadable(path / "gt.npz", exc) from exc
+    frames = {}
+    for f in info["frames"]:
+        png = path / "frames" / f"{f:05d}.png"
+        try:
+            frames[f] = np.asarray(Image.open(png).convert("RGB"))
+        except (OSError, ValueError) as exc:
+            raise unreadable(png, exc) from exc
+    return info, gt, frames
+
+
+def example_sheet_bytes(path: Path) -> tuple[bytes, dict]:
+    info, gt, frames = read_render(path)
+    events = [Event(f, label) for f, label in info["events"]]
     # masks and depth were saved for the event frames only, in the order of info["frames"]
     masks, depth = dict(zip(info["frames"], gt["masks"])), dict(zip(info["frames"], gt["depth"]))
     first = frames[info["frames"][0]]
@@ -140,10 +183,27 @@ def camera_record(cam) -> dict:
 def current_camera(row, reg) -> dict:
     """The camera today's code and configs choose for ``row`` (the search alone, no render: about a
     second)."""
-    from rigidbench.blender.render import resolve_camera
-    from rigidbench.spec.build import build_scene_spec
-
     return camera_record(resolve_camera(build_scene_spec(row, reg), reg).camera)
+
+
+def read_index(path: Path) -> dict:
+    """The gallery's examples.json (sample id -> INDEX_KEYS), {} when there is none; UserError naming the
+    file, and the entry, when it is not JSON mapping ids to records."""
+    if not path.exists():
+        return {}
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: not a readable gallery index ({exc}); delete it (every example is then "
+                        "rendered again) or restore it from git") from exc
+    if not isinstance(index, dict):
+        raise UserError(f"{path}: a gallery index maps example ids to their sheets' facts, found a "
+                        f"{type(index).__name__}; delete it or restore it from git")
+    for sid, info in index.items():
+        if not isinstance(info, dict):
+            raise UserError(f"{path}: entry {sid} is a {type(info).__name__}, not a record of its sheets; delete "
+                            "the entry (its example is then rendered again) or restore the file from git")
+    return index
 
 
 def committed_is_current(row, reg, preset, out: Path, index: dict, prefixes: list[str]) -> bool:
@@ -151,7 +211,13 @@ def committed_is_current(row, reg, preset, out: Path, index: dict, prefixes: lis
     examples.json) at this preset and with the camera today's search picks, so they need no render.
     Scene, object and light changes are not detected: pass --fresh after those."""
     info = index.get(row.sample_id)
-    if info is None or info.get("preset") != preset.name or "camera" not in info:
+    if info is None or info.get("preset") != preset.name:
+        return False
+    lacking = [k for k in INDEX_KEYS if k not in info]
+    lacking += [f"camera.{k}" for k in CAMERA_KEYS if "camera" in info and k not in info["camera"]]
+    if lacking:
+        log.warning("example %s: its entry in %s lacks %s; rendering it again", row.sample_id,
+                    out / "examples.json", ", ".join(lacking))
         return False
     if not all((out / f"{p}.jpg").exists() for p in prefixes):
         return False
@@ -171,12 +237,6 @@ def render_objects(reg, preset, work: Path) -> Path:
     around each into ``work/objects/<id>.png``; reused if done."""
     import bpy
     from PIL import Image
-
-    from rigidbench.assets.objects import build_object
-    from rigidbench.assets.scenes import build_studio
-    from rigidbench.blender.render import beauty_mode, configure_cycles, select_device
-    from rigidbench.blender.session import reset_scene
-    from rigidbench.groundtruth import camera_model as cm
 
     out = work / "objects"
     ids = sorted(reg.objects, key=lambda o: (max(reg.object(o).size_m), o))
@@ -227,8 +287,6 @@ def render_objects(reg, preset, work: Path) -> Path:
 def objects_sheet_bytes(reg, tiles_dir: Path, preset) -> bytes:
     from PIL import Image
 
-    from rigidbench.report.gallery import encode_under, objects_sheet
-
     ids = sorted(reg.objects)
     size = 300
     tiles = [(reg.object(o).name, np.asarray(Image.open(tiles_dir / f"{o}.png").convert("RGB").resize((size, size))),
@@ -245,8 +303,6 @@ def objects_sheet_bytes(reg, tiles_dir: Path, preset) -> bytes:
 
 def before_after(before_png: Path, after_png: Path, label: str) -> bytes:
     from PIL import Image, ImageDraw
-
-    from rigidbench.report.gallery import encode_under, font
 
     imgs = []
     for p in (before_png, after_png):
@@ -266,8 +322,6 @@ def objects_before_after(reg, before_sheet: Path, tiles_dir: Path, preview_tile:
     objects.png: ids in sorted order, four per row, two views of ``preview_tile`` px each) beside
     its new gallery tile."""
     from PIL import Image
-
-    from rigidbench.report.gallery import encode_under, objects_sheet
 
     old = Image.open(before_sheet).convert("RGB")
     tiles = []
@@ -334,11 +388,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--before-data", type=Path, help="split directory of bundles from an older checkout")
     parser.add_argument("--before-objects", type=Path, help="objects PNG (benchmarks/assets_preview.py) from it")
     args = parser.parse_args(argv)
+    if args.before_data is not None and not args.before_data.is_dir():
+        parser.error(f"--before-data {args.before_data}: not a directory of bundles")
+    if args.before_objects is not None and not args.before_objects.is_file():
+        parser.error(f"--before-objects {args.before_objects}: no such file")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-
-    from rigidbench import jsonio, manifest
-    from rigidbench.config import registry
-    from rigidbench.report.gallery import pick_examples
 
     reg = registry()
     preset = reg.preset(args.quality)
@@ -351,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         for key, row in picks.items():
             prefixes[row.sample_id].append(f"{prefix}_{key}")
     index_path = args.out / "examples.json"
-    index = json.loads(index_path.read_text()) if index_path.exists() else {}
+    index = read_index(index_path)
     only = {s for s in args.only.split(",") if s}
     unknown = sorted(only - set(prefixes) - {"objects"})
     if unknown:
@@ -382,6 +436,8 @@ def main(argv: list[str] | None = None) -> int:
         except EXAMPLE_ERRORS as exc:  # an example that cannot be rendered: report it, go on; a bug stops the run
             log.error("example %s failed: %s", row.sample_id, exc)
             failed.append(row.sample_id)
+    if failed:
+        log.error("%d example(s) could not be rendered: %s (the reasons are above)", len(failed), " ".join(failed))
     if args.render_only:
         return 1 if failed else 0
     rendered = {r.sample_id for r in chosen if (args.work / r.sample_id / "info.json").exists()}
@@ -413,10 +469,17 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / "before_after").mkdir(exist_ok=True)
         for scene, row in sorted(by_scene.items()):
             old = args.before_data / row.sample_id / "frames" / "00000.png"
-            if old.exists() and row.sample_id in rendered:
-                new = args.work / row.sample_id / "frames" / "00000.png"
+            new = args.work / row.sample_id / "frames" / "00000.png"
+            if not old.is_file():
+                log.warning("scene %s: no before/after thumbnail, %s has no first frame", scene, old.parent.parent)
+            elif row.sample_id not in rendered or not new.is_file():
+                log.warning("scene %s: no before/after thumbnail, example %s was not rendered in %s (its first "
+                            "frame is needed)", scene, row.sample_id, args.work)
+            else:
                 (args.out / "before_after" / f"{scene}.jpg").write_bytes(before_after(old, new, f"{scene} ({row.sample_id})"))
-    if args.before_objects and args.before_objects.exists():
+    if args.before_objects and not (args.work / "objects").is_dir():
+        log.warning("no objects before/after: the objects are not rendered in %s (add --only objects)", args.work)
+    elif args.before_objects:
         (args.out / "before_after").mkdir(exist_ok=True)
         data = objects_before_after(reg, args.before_objects, args.work / "objects")
         (args.out / "before_after" / "objects.jpg").write_bytes(data)
@@ -434,4 +497,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except RigidBenchError as exc:  # unusable input: one line naming it (as the CLI does), status 2
+        print(f"make_gallery: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -13,10 +13,10 @@ import pytest
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed; "
                                         "install the 'sim' extra to run the asset tests")
 
-from rigidbench.assets import _paint  # noqa: E402
-from rigidbench.assets.objects import build_object, build_ramp  # noqa: E402
-from rigidbench.assets.scenes import build_environment  # noqa: E402
-from rigidbench.assets.standin import ramp_mesh  # noqa: E402
+from rigidbench.blender.assets import _paint  # noqa: E402
+from rigidbench.blender.assets.objects import build_object, build_ramp  # noqa: E402
+from rigidbench.blender.assets.scenes import build_environment  # noqa: E402
+from rigidbench.blender.assets.standin import ramp_mesh  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
 from rigidbench.spec.types import RampShape  # noqa: E402
 
@@ -148,7 +148,7 @@ def test_user_obj_mesh_is_loaded_and_fitted(empty_scene, tmp_path):
     np.testing.assert_allclose(apex, [0.0, 0.0, 0.045], atol=1e-6)  # +y up in OBJ became +z up
     assert ob.data.materials[0] is not None
     # The collision hull comes from the same fitted vertices, and the import leaves nothing behind.
-    from rigidbench.assets.objects import object_vertices
+    from rigidbench.blender.assets.objects import object_vertices
 
     np.testing.assert_allclose(np.sort(object_vertices(cfg), axis=0), np.sort(v, axis=0), atol=1e-6)
     assert set(bpy.data.objects) - before == {ob}
@@ -243,7 +243,7 @@ def test_space_above_every_support_is_clear(empty_scene, scene_id):
     # any scene geometry within CLEAR_ABOVE_M: nothing hangs over a drop zone (the japandi pendant once did).
     from mathutils import Vector
 
-    from rigidbench.assets.scenes import CLEAR_ABOVE_M, CLEAR_INSET_M
+    from rigidbench.blender.assets.scenes import CLEAR_ABOVE_M, CLEAR_INSET_M
 
     scene = REG.scene(scene_id)
     build_environment(scene)
@@ -265,7 +265,7 @@ def test_space_above_every_support_is_clear(empty_scene, scene_id):
 
 
 def test_japandi_pendant_hangs_above_the_clear_column(empty_scene):
-    from rigidbench.assets.scenes import CLEAR_ABOVE_M
+    from rigidbench.blender.assets.scenes import CLEAR_ABOVE_M
 
     scene = REG.scene("modern_japandi_dining")
     env = build_environment(scene)
@@ -282,8 +282,8 @@ def test_japandi_pendant_hangs_above_the_clear_column(empty_scene):
 def test_collision_hull_is_the_decimated_hull_of_the_rendered_mesh(empty_scene, object_id):
     from scipy.spatial import ConvexHull
 
-    from rigidbench.assets.collision import MAX_HULL_VERTICES, hull_mesh
-    from rigidbench.assets.objects import object_vertices
+    from rigidbench.blender.assets.collision import MAX_HULL_VERTICES, hull_mesh
+    from rigidbench.blender.assets.objects import object_vertices
 
     cfg = REG.object(object_id)
     rendered = local_vertices(build_object(cfg, f"{object_id}_0"))

@@ -11,7 +11,7 @@ bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not
                                         "run `make test`, which installs it")
 
 from rigidbench import manifest  # noqa: E402
-from rigidbench.assets._mesh import box, to_object  # noqa: E402
+from rigidbench.blender.assets._mesh import box, to_object  # noqa: E402
 from rigidbench.blender.camera import box_distance, camera_pose, check_view, framing_box, search_camera  # noqa: E402
 from rigidbench.blender.render import build_search_scene  # noqa: E402
 from rigidbench.groundtruth import camera_model as cm  # noqa: E402

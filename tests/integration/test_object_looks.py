@@ -19,9 +19,9 @@ import pytest
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed; "
                                         "install the 'sim' extra to run the asset tests")
 
-from rigidbench.assets import _paint  # noqa: E402
-from rigidbench.assets.objects import build_object  # noqa: E402
-from rigidbench.assets.scenes import build_studio  # noqa: E402
+from rigidbench.blender.assets import _paint  # noqa: E402
+from rigidbench.blender.assets.objects import build_object  # noqa: E402
+from rigidbench.blender.assets.scenes import build_studio  # noqa: E402
 from rigidbench.blender.render import set_color_management  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
 

@@ -16,7 +16,7 @@ import pytest
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed; "
                                         "install the 'blender' extra")
 
-from rigidbench.assets.scenes import build_environment  # noqa: E402
+from rigidbench.blender.assets.scenes import build_environment  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
 
 pytestmark = pytest.mark.integration
@@ -92,7 +92,7 @@ def test_beach_sky_renders_blue(empty_scene):
 
 def test_mural_is_on_every_wall_at_camera_height(empty_scene):
     """The benchmark's cameras circle the low table: whatever wall is behind it must carry butterflies."""
-    from rigidbench.assets import _paint
+    from rigidbench.blender.assets import _paint
 
     env = build_environment(REG.scenes["butterfly_mural_room"])
     walls = [ob for ob in env.occluders if "_wall_" in ob.name]
@@ -164,7 +164,7 @@ def test_white_kitchen_counter_wall_has_decor_at_eye_height(empty_scene):
 def _window_hiders(env, scene_id: str, reach_m: float, cover: float) -> list[tuple[str, str]]:
     """(window, item) pairs where a furnishing item within ``reach_m`` of a window's wall spans more than
     ``cover`` of the opening's height and overlaps it along the wall (curtains, plants and the like excepted)."""
-    from rigidbench.assets.scenes import WINDOW_DRESSING
+    from rigidbench.blender.assets.scenes import WINDOW_DRESSING
 
     def kind(ob) -> str:
         return ob.name[len(scene_id) + 1:].rsplit("_", 1)[0]
@@ -192,7 +192,7 @@ def _window_hiders(env, scene_id: str, reach_m: float, cover: float) -> list[tup
 def test_no_bookcase_or_picture_hides_a_window(empty_scene, scene_id):
     """A bookcase stood in front of the mural room's window, and a print hung over one in the luxury kitchen
     and two bookcases over the loft's: wall items now slide beside the windows (Kit.on_wall)."""
-    from rigidbench.assets.scenes import WINDOW_COVER, WINDOW_REACH_M
+    from rigidbench.blender.assets.scenes import WINDOW_COVER, WINDOW_REACH_M
 
     env = build_environment(REG.scenes[scene_id])
     assert _window_hiders(env, scene_id, WINDOW_REACH_M - 0.05, WINDOW_COVER + 0.05) == []

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rigidbench.assets.standin import box, object_mesh
+from rigidbench.blender.assets.standin import box, object_mesh
 from rigidbench.groundtruth.contacts import (contact_pairs, convex_hull, detect_contacts, farthest_points,
                                              pair_contact, quat_to_matrix)
 

@@ -400,9 +400,9 @@ def test_decimals_ignore_numerical_noise_beside_real_values():
 
 def test_scatter_labels_of_coinciding_models_do_not_overlap():
     """The demo's gamma and background-wobble share their means; their names must still be readable."""
-    from rigidbench.report.figures import _new_figure, place_labels
+    from rigidbench.report.figures import new_figure, place_labels
 
-    fig = _new_figure(7.0, 5.0)
+    fig = new_figure(7.0, 5.0)
     ax = fig.add_subplot()
     points = [(0.129, 0.807, "gamma"), (0.129, 0.804, "background-wobble"), (0.129, 0.805, "reference-like"),
               (0.188, 0.991, "slow"), (0.227, 0.991, "gravity"), (0.35, 0.989, "static")]

@@ -1,8 +1,8 @@
-"""Wall items slide beside windows (assets.scenes.slide_clear), checked on hand-made walls."""
+"""Wall items slide beside windows (blender.assets.scenes.slide_clear), checked on hand-made walls."""
 
 import pytest
 
-from rigidbench.assets.scenes import slide_clear
+from rigidbench.blender.assets.scenes import slide_clear
 
 
 def test_an_item_clear_of_every_window_stays_where_it_was_put():

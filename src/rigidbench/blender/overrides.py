@@ -8,9 +8,8 @@
 - ``offsets_m``: actor name -> (T, 3) world translation in metres added to the actor's rendered
   pose at sample frame t (its physics body, and so the simulation, is not moved).
 
-Offsets need the procedural assets (a render mesh parented to a hidden physics body); with the
-plain fallback dressing the rendered object is the rigid body itself, whose pose the rigid-body
-cache owns, so an offset cannot be applied and ``RuntimeError`` says so.
+Offsets move the rendered model (``render.dress_scene`` parents it to the actor's hidden physics body),
+never the rigid body itself, whose pose the rigid-body cache owns.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..assets import objects as asset_objects
+from .assets import objects as asset_objects
 
 
 @dataclass(frozen=True)
@@ -67,10 +66,6 @@ class RenderOverrides:
 
         for name, off in self.offsets_m.items():
             phys, shown = physics_objects[name], dressing.render_objects[name]
-            if shown is phys:
-                raise RuntimeError(f"actor '{name}': a render-time offset needs the procedural assets "
-                                   "(rigidbench/assets/objects.py); the fallback dressing renders the rigid body "
-                                   "itself")
             shown.matrix_world = Matrix.Translation(Vector(tuple(map(float, off[frame])))) @ phys.matrix_world
 
 

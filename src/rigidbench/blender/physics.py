@@ -39,9 +39,6 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..assets.collision import MAX_HULL_VERTICES, hull_mesh
-from ..assets.objects import object_vertices
-from ..assets.standin import Mesh, box, ramp_mesh
 from ..atomic import atomic_dir
 from ..config import Registry, registry as load_registry
 from ..errors import SpecError
@@ -49,6 +46,9 @@ from ..groundtruth.contacts import contact_pairs, convex_hull, detect_contacts
 from ..groundtruth.trajectory import Contact, Trajectory, save_contacts
 from ..rotations import quat_about_z
 from ..spec.types import Body, BodyPhysics, SceneSpec
+from .assets.collision import MAX_HULL_VERTICES, hull_mesh
+from .assets.objects import object_vertices
+from .assets.standin import Mesh, box, ramp_mesh
 from .session import import_bpy, link_object, reset_scene
 
 log = logging.getLogger(__name__)

@@ -4,10 +4,10 @@ Per example (paper, appendix A.3-A.4):
 1. a geometry-only scene (actors at their frame-0 poses, support, floor and the environment) for
    the camera search (``camera.search_camera``), which fixes the task rotation and the camera;
 2. ``physics.simulate`` on the resolved spec (Bullet, the same code as ``rigidbench simulate``);
-3. the simulated scene is dressed (procedural assets and environment when the assets package
-   provides them, else plain materials, a sky colour and a sun), the camera is added and every
-   frame is rendered from the rigid-body cache: first a data pass per frame (object index and Z
-   through the compositor into 32-bit EXR), then the RGB frames (PNG).
+3. the simulated scene is dressed (each actor's procedural model and the furnished environment,
+   from ``blender.assets``), the camera is added and every frame is rendered from the rigid-body
+   cache: first a data pass per frame (object index and Z through the compositor into 32-bit EXR),
+   then the RGB frames (PNG).
 
 The data passes are rendered separately with one sample and a 0.01 px pixel filter, so the index
 and Z passes sample every pixel at its centre (Cycles writes them from the first sample only,
@@ -31,19 +31,18 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..assets import objects as asset_objects, scenes as asset_scenes
 from ..config import RenderPreset, Registry
 from ..groundtruth import bundle as B
 from ..groundtruth.writer import write_bundle
 from ..spec.types import SceneSpec
 from . import physics
+from .assets import objects as asset_objects, scenes as asset_scenes
 from .camera import add_camera, search_camera
 from .physics import FLOOR_NAME, SUPPORT_NAME, scene_bodies
 from .session import link_object, reset_scene
 
 log = logging.getLogger(__name__)
 
-ASSETS_DIR = Path(__file__).resolve().parents[1] / "assets"
 DATA_FILTER_WIDTH_PX = 0.01
 BEAUTY_FILTER_WIDTH_PX = 1.5  # Cycles' default Blackman-Harris width
 BACKGROUND_DEPTH_M = 1e9  # Cycles writes 1e10 where a ray leaves the scene; stored as +inf
@@ -51,6 +50,7 @@ POSE_TOLERANCE_M = 1e-5
 # A preset's denoise_quality -> (OpenImageDenoise quality, prefilter of its albedo and normal guides).
 DENOISE_SETTINGS = {"high": ("HIGH", "ACCURATE"), "balanced": ("BALANCED", "FAST"), "fast": ("FAST", "FAST")}
 DEVICE_CHOICES = ("auto", "cpu", "gpu")
+SUPPORT_RGB = (0.55, 0.5, 0.45)  # a physics support the environment does not provide (hand-made specs)
 
 
 @dataclass(frozen=True)
@@ -295,17 +295,12 @@ def read_passes(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class Dressing:
-    """Rendered bpy object per actor (spec order) and what the environment provided."""
+    """Rendered bpy object per actor (spec order, each a procedural model parented to its hidden physics
+    body), the environment (``assets.scenes.Environment``) and the physics bodies hidden from render."""
 
     render_objects: dict[str, Any]
-    environment: Any = None
-    uses_assets: bool = False
+    environment: Any
     hidden: list[str] = field(default_factory=list)
-
-
-def assets_available() -> tuple[bool, bool]:
-    """(object builders present, environment builder present), judged by the assets package files."""
-    return (ASSETS_DIR / "objects.py").is_file(), (ASSETS_DIR / "scenes.py").is_file()
 
 
 def _plain_material(name: str, rgb: tuple[float, float, float], roughness: float = 0.5) -> Any:
@@ -317,28 +312,6 @@ def _plain_material(name: str, rgb: tuple[float, float, float], roughness: float
     bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
     bsdf.inputs["Roughness"].default_value = roughness
     return mat
-
-
-def _actor_colour(k: int) -> tuple[float, float, float]:
-    hue = (0.61803398875 * k) % 1.0
-    return tuple(float(0.45 + 0.4 * np.cos(2 * np.pi * (hue + j / 3))) for j in range(3))  # type: ignore[return-value]
-
-
-def _default_lighting(scene: Any) -> None:
-    import bpy
-
-    world = bpy.data.worlds.new("rb_sky")
-    world.use_nodes = True
-    bg = world.node_tree.nodes.get("Background")
-    bg.inputs["Color"].default_value = (0.6, 0.68, 0.8, 1.0)
-    bg.inputs["Strength"].default_value = 0.8
-    scene.world = world
-    sun = bpy.data.lights.new("rb_sun", "SUN")
-    sun.energy = 3.0
-    sun.angle = 0.1
-    obj = bpy.data.objects.new("rb_sun", sun)
-    obj.rotation_euler = (0.7, 0.2, 0.6)
-    scene.collection.objects.link(obj)
 
 
 def _set_material(obj: Any, mat: Any) -> None:
@@ -355,51 +328,41 @@ def _hide(obj: Any) -> None:
 
 def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[str, Any]) -> Dressing:
     """Give the physics scene its looks. ``objects`` maps body name (actors, "support", "floor") to
-    the physics bpy object. With the assets package, each actor gets its procedural model as a child
-    of its physics object (which is hidden from render) and the scene's environment is built (the
-    physics support and floor are then hidden from render); otherwise plain materials are used."""
+    the physics bpy object. Each actor gets its procedural model as a child of its physics object
+    (which is hidden from render) and the scene's environment is built; the physics floor, and the
+    physics support when the environment has a support of its name, are hidden from render. A
+    support the environment lacks (a hand-made spec) stays visible in a plain material."""
     import bpy
 
-    have_objects, have_env = assets_available()
     render_objects: dict[str, Any] = {}
     hidden: list[str] = []
-    for k, body in enumerate(spec.bodies):
+    for body in spec.bodies:
         phys = objects[body.name]
-        if have_objects:
-            name = f"{body.name}.render"
-            if body.ramp is not None:
-                obj = asset_objects.build_ramp(body.ramp, registry.material(body.ramp.material), name)
-            else:
-                obj = asset_objects.build_object(registry.object(body.asset), name)
-            obj.parent = phys
-            obj.matrix_parent_inverse.identity()
-            obj.location, obj.rotation_mode = (0.0, 0.0, 0.0), "QUATERNION"
-            obj.rotation_quaternion, obj.scale = (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
-            _hide(phys)
-            hidden.append(body.name)
-            render_objects[body.name] = obj
+        name = f"{body.name}.render"
+        if body.ramp is not None:
+            obj = asset_objects.build_ramp(body.ramp, registry.material(body.ramp.material), name)
         else:
-            _set_material(phys, _plain_material(f"rb_actor_{k}", _actor_colour(k)))
-            render_objects[body.name] = phys
-    environment = None
-    if have_env:
-        environment = asset_scenes.build_environment(registry.scene(spec.scene))
-        for name in (SUPPORT_NAME, FLOOR_NAME):
-            if name in objects and (name == FLOOR_NAME or spec.support.name in environment.supports):
-                _hide(objects[name])
-                hidden.append(name)
-    else:
-        _default_lighting(scene)
-    for name, rgb in ((SUPPORT_NAME, (0.55, 0.5, 0.45)), (FLOOR_NAME, (0.35, 0.35, 0.36))):
-        if name in objects and not objects[name].hide_render:
-            _set_material(objects[name], _plain_material(f"rb_{name}", rgb, 0.7))
+            obj = asset_objects.build_object(registry.object(body.asset), name)
+        obj.parent = phys
+        obj.matrix_parent_inverse.identity()
+        obj.location, obj.rotation_mode = (0.0, 0.0, 0.0), "QUATERNION"
+        obj.rotation_quaternion, obj.scale = (1.0, 0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+        _hide(phys)
+        hidden.append(body.name)
+        render_objects[body.name] = obj
+    environment = asset_scenes.build_environment(registry.scene(spec.scene))
+    for name in (SUPPORT_NAME, FLOOR_NAME):
+        if name in objects and (name == FLOOR_NAME or spec.support.name in environment.supports):
+            _hide(objects[name])
+            hidden.append(name)
+    if SUPPORT_NAME in objects and SUPPORT_NAME not in hidden:
+        _set_material(objects[SUPPORT_NAME], _plain_material(f"rb_{SUPPORT_NAME}", SUPPORT_RGB, 0.7))
     for obj in scene.objects:
         obj.pass_index = 0
     for k, body in enumerate(spec.bodies, start=1):
         render_objects[body.name].pass_index = k
     bpy.context.view_layer.update()
-    return Dressing(render_objects=render_objects, environment=environment, uses_assets=have_objects,
-                    hidden=hidden)
+    return Dressing(render_objects=render_objects, environment=environment, hidden=hidden)
 
 
 # -- one example --------------------------------------------------------------------------------
@@ -417,7 +380,6 @@ class ExampleRender:
     seconds: dict[str, float]
     software: dict[str, str]
     color_management: dict[str, Any]
-    uses_assets: bool
 
 
 def build_search_scene(spec: SceneSpec, registry: Registry) -> tuple[Any, dict[str, Any], Dressing]:
@@ -439,9 +401,8 @@ def resolve_camera(spec: SceneSpec, registry: Registry) -> SceneSpec:
     scene, objects, dressing = build_search_scene(spec, registry)
     active = [dressing.render_objects[b.name] for b in spec.active]
     posed = {b.name: objects[b.name] for b in spec.bodies}
-    scene_id = dressing.environment.scene_id if dressing.environment is not None else None
     return search_camera(spec, registry.camera, scene, posed, active, actors=list(dressing.render_objects.values()),
-                         scene_id=scene_id)
+                         scene_id=dressing.environment.scene_id)
 
 
 def _check_poses(objects: Sequence[Any], positions_m: np.ndarray, frame: int, sample_id: str) -> None:
@@ -524,8 +485,7 @@ def render_example(spec: SceneSpec, registry: Registry, preset: RenderPreset, fr
         spec=spec, simulation=sim, index=index, depth_m=depth, device=chosen, seconds=seconds,
         software={"blender": bpy.app.version_string, "blender_build": bpy.app.build_hash.decode(errors="replace")},
         color_management={"view_transform": vs.view_transform, "look": vs.look, "exposure": vs.exposure,
-                          "gamma": vs.gamma, "display_device": scene.display_settings.display_device},
-        uses_assets=dressing.uses_assets)
+                          "gamma": vs.gamma, "display_device": scene.display_settings.display_device})
 
 
 def render_spec(spec: SceneSpec, registry: Registry, preset: RenderPreset, final_dir: Path, device: str = "auto",
@@ -555,5 +515,5 @@ def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:
 __all__ = ["RenderDevice", "select_device", "pick_device", "COLOR_MANAGEMENT", "set_color_management",
            "configure_cycles", "beauty_mode", "light_transport",
            "drop_bump_mapping", "DENOISE_SETTINGS", "data_mode", "add_pass_output",
-           "pass_file", "read_passes", "Dressing", "assets_available", "dress_scene", "ExampleRender",
+           "pass_file", "read_passes", "Dressing", "dress_scene", "ExampleRender",
            "build_search_scene", "resolve_camera", "render_example", "render_spec", "DEVICE_CHOICES"]

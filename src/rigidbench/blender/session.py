@@ -10,6 +10,9 @@ about 45 ms for ``read_factory_settings``, which would also reset the preference
 from __future__ import annotations
 
 import logging
+import os
+import sys
+from pathlib import Path
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -23,6 +26,26 @@ def import_bpy() -> Any:
         raise ImportError("Blender as a Python module (bpy 4.5, Python 3.11) is needed for simulation and "
                           "rendering; install it with `pip install -e '.[sim]'`") from exc
     return bpy
+
+
+def import_bpy_into(folder: str | Path) -> bool:
+    """Import bpy with TMPDIR set to ``folder`` (restored afterwards), so that Blender's session temporary
+    folder (``blender_*``, made when bpy is first imported) lives there. Nothing is done when bpy is already
+    imported. Returns whether bpy is imported (False when it is missing: callers that need it say so)."""
+    if "bpy" in sys.modules:
+        return True
+    saved = os.environ.get("TMPDIR")
+    os.environ["TMPDIR"] = str(folder)
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        return False
+    finally:
+        if saved is None:
+            os.environ.pop("TMPDIR", None)
+        else:
+            os.environ["TMPDIR"] = saved
+    return True
 
 
 def bpy_available() -> bool:
@@ -59,4 +82,4 @@ def link_object(scene: Any, name: str, vertices: Any, faces: Any) -> Any:
     return obj
 
 
-__all__ = ["import_bpy", "bpy_available", "reset_scene", "link_object"]
+__all__ = ["import_bpy", "import_bpy_into", "bpy_available", "reset_scene", "link_object"]

@@ -77,7 +77,7 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
                     **{k: v for k, v in dataclasses.asdict(preset).items() if k not in ("name", "resolution", "frames")},
                     "motion_blur": False, "depth_of_field": False,
                     "seed": spec.seed, "data_passes": "1 sample at pixel centres (filter width 0.01 px)",
-                    "color_management": result.color_management, "procedural_assets": result.uses_assets}
+                    "color_management": result.color_management, "procedural_assets": True}
     software = {**result.software, "rigidbench": __version__, "python": sys.version.split()[0],
                 "numpy": np.__version__}
     seconds = {**{k: round(v, 3) for k, v in result.seconds.items()}, "total": round(total_s, 3)}

@@ -55,6 +55,7 @@ import numpy as np
 
 from ..blender.overrides import RenderOverrides
 from ..blender.render import render_spec
+from ..blender.session import import_bpy_into
 from ..config import Registry, registry as packaged_registry
 from ..errors import BundleError, PredictionError
 from ..groundtruth.bundle import Sample
@@ -154,24 +155,6 @@ def process_scratch(scratch_dir: str | Path) -> Path:
     return mine
 
 
-def _import_bpy_into(folder: Path) -> None:
-    """Import bpy with TMPDIR set to ``folder`` (restored afterwards), so that Blender's session temporary
-    folder (``blender_*``) lives there; nothing when bpy is already imported or missing."""
-    if "bpy" in sys.modules:
-        return
-    saved = os.environ.get("TMPDIR")
-    os.environ["TMPDIR"] = str(folder)
-    try:
-        import bpy  # noqa: F401
-    except ImportError:
-        pass  # render_counterfactual says so per example
-    finally:
-        if saved is None:
-            os.environ.pop("TMPDIR", None)
-        else:
-            os.environ["TMPDIR"] = saved
-
-
 @contextlib.contextmanager
 def scratch_bundle_dir(sample_id: str, scratch_dir: str | Path | None = None) -> Iterator[Path]:
     """A temporary directory for one example's re-rendered bundle, removed afterwards: inside
@@ -182,7 +165,7 @@ def scratch_bundle_dir(sample_id: str, scratch_dir: str | Path | None = None) ->
             yield Path(tmp)
         return
     mine = process_scratch(scratch_dir)
-    _import_bpy_into(mine)
+    import_bpy_into(mine)  # Blender's own temporary folder goes here too; a missing bpy is reported per example
     for stale in mine.glob(f"rigidbench-{sample_id}-*"):
         shutil.rmtree(stale, ignore_errors=True)
     with tempfile.TemporaryDirectory(prefix=f"rigidbench-{sample_id}-", dir=mine) as tmp:

@@ -35,20 +35,19 @@ from rigidbench.folders import GENERATION_FILE, PredictionsFolder
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import Intervals, ReportData, higher_is_better, paired_vs_baseline
 from rigidbench.report.examples import resolve_dir
-from rigidbench.report.figures import FigureFile, _new_figure, _save, model_colors
+from rigidbench.report.figures import FigureFile, model_colors, new_figure, save_figure
 from rigidbench.report.tables import (
-    _ARROW_TEXT,
-    _GROUP_WORDS,
-    _PARTITION_NOTE,
+    ARROW_TEXT,
+    GROUP_WORDS,
     MARKS_NOTE,
+    PARTITION_NOTE,
     Cell,
     Table,
-    _grouping,
-    _num,
-    _write_csv,
     column_decimals,
+    csv_number,
     display_scale,
     fmt,
+    grouping,
     headline_metrics,
     interval_text,
     marks_for,
@@ -57,6 +56,7 @@ from rigidbench.report.tables import (
     metric_label,
     scale_note,
     value_cell,
+    write_csv,
 )
 
 log = logging.getLogger(__name__)
@@ -343,7 +343,7 @@ def selected_paired_table(data: ReportData, sweep: CheckpointSweep) -> Table | N
                                   interval_text(lo[k] * scale, hi[k] * scale, decimals, signed=True),
                                   f"n={matched}" if matched < n else "",
                                   "significant" if (lo[k] > 0 or hi[k] < 0) else ""))
-        rows.append((Cell(metric_label(metric) + _ARROW_TEXT[metric_arrow(metric)]),) + tuple(cells))
+        rows.append((Cell(metric_label(metric) + ARROW_TEXT[metric_arrow(metric)]),) + tuple(cells))
     names = ", ".join(f"{_selected_label(c)} ({c.name})" for c in chosen)
     against = ([f"against base Wan ({t.models[sweep.base]})"] if sweep.base is not None else []) + (
         [f"between the two runs' selections ({chosen[1].run} − {chosen[0].run})"] if len(chosen) == 2 else [])
@@ -364,7 +364,7 @@ def selected_breakdown_table(data: ReportData, sweep: CheckpointSweep, by: str) 
     t = data.table
     if not sweep.selected:
         return None
-    labels, groups, iv, label = _grouping(data, by)
+    labels, groups, iv, label = grouping(data, by)
     chosen = [sweep.checkpoints[i] for i in sweep.selected]
     entries = ([("Base", sweep.base)] if sweep.base is not None else []) + [(_selected_label(c), c.index)
                                                                             for c in chosen]
@@ -387,9 +387,9 @@ def selected_breakdown_table(data: ReportData, sweep: CheckpointSweep, by: str) 
                                           bool(t.skipped[m, k]), with_interval=False, scale=display_scale(metric))
                             for m in rows_idx})
         header += [label(g) for g in groups]
-        spans.append((f"{metric_label(metric)}{_ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
+        spans.append((f"{metric_label(metric)}{ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
     rows = tuple((Cell(text),) + tuple(col[m] for col in columns) for text, m in entries)
-    word, csv_name = _GROUP_WORDS[by]
+    word, csv_name = GROUP_WORDS[by]
     names = " and ".join(METRICS[m].display_name for m in metrics)
     sizes = ", ".join(f"{label(g)} {c}" for g, c in zip(groups, counts))
     who = ", ".join(f"{text} ({t.models[m]})" for text, m in entries)
@@ -397,7 +397,7 @@ def selected_breakdown_table(data: ReportData, sweep: CheckpointSweep, by: str) 
                + ("base Wan and " if sweep.base is not None else "")
                + f"the selected checkpoints (the lowest mean ATE-3D of each training run): {who}. Non-finite "
                "measurements are left out and n= gives the finite count where there were some. "
-               + (_PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
+               + (PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
                + f" The 95% intervals are in {csv_name}." + scale_note(metrics))
     title = "Selected checkpoints by task" if by == "task" else "Selected checkpoints by evaluation partition"
     return Table(f"checkpoint_selected_{'tasks' if by == 'task' else 'partitions'}", title, caption,
@@ -425,15 +425,15 @@ def write_checkpoint_csv(data: ReportData, sweep: CheckpointSweep, out_dir: Path
             paired = ["", "", "", "", "", "", ""]
             if i is not None and sweep.diff is not None:
                 d, p = sweep.diff, sweep.poi
-                paired = [_num(d.mean[i, k]), _num(d.lo[i, k]), _num(d.hi[i, k]), _num(p.mean[i, k]),
-                          _num(p.lo[i, k]), _num(p.hi[i, k]), int(d.n_finite[i, k])]
+                paired = [csv_number(d.mean[i, k]), csv_number(d.lo[i, k]), csv_number(d.hi[i, k]),
+                          csv_number(p.mean[i, k]), csv_number(p.lo[i, k]), csv_number(p.hi[i, k]), int(d.n_finite[i, k])]
             rows.append([run, mode, step, t.models[m], metric, int(METRICS[metric].higher_is_better),
-                         _num(o.mean[m, k]), _num(o.lo[m, k]), _num(o.hi[m, k]), int(o.n_finite[m, k]), *paired,
-                         int(i is not None and i in sweep.selected)])
-    return _write_csv(out_dir / "checkpoint_sweep.csv",
-                      ["training_run", "mode", "step", "model", "metric", "higher_is_better", "mean", "ci_low",
-                       "ci_high", "n_finite", "diff_mean", "diff_ci_low", "diff_ci_high", "poi", "poi_ci_low",
-                       "poi_ci_high", "n_matched", "selected"], rows)
+                         csv_number(o.mean[m, k]), csv_number(o.lo[m, k]), csv_number(o.hi[m, k]),
+                         int(o.n_finite[m, k]), *paired, int(i is not None and i in sweep.selected)])
+    return write_csv(out_dir / "checkpoint_sweep.csv",
+                     ["training_run", "mode", "step", "model", "metric", "higher_is_better", "mean", "ci_low",
+                      "ci_high", "n_finite", "diff_mean", "diff_ci_low", "diff_ci_high", "poi", "poi_ci_low",
+                      "poi_ci_high", "n_matched", "selected"], rows)
 
 
 def checkpoint_figure(data: ReportData, sweep: CheckpointSweep, out_dir: Path) -> FigureFile | None:
@@ -448,7 +448,7 @@ def checkpoint_figure(data: ReportData, sweep: CheckpointSweep, out_dir: Path) -
                                                                         if m not in ("ate3d", "iou", "ssim")]
     ncols = min(5, len(order))
     nrows = math.ceil(len(order) / ncols)
-    fig = _new_figure(2.9 * ncols, 2.3 * nrows + 0.4)
+    fig = new_figure(2.9 * ncols, 2.3 * nrows + 0.4)
     axes = fig.subplots(nrows, ncols, squeeze=False)
     colors = model_colors(len(sweep.runs))
     o = data.overall
@@ -492,4 +492,4 @@ def checkpoint_figure(data: ReportData, sweep: CheckpointSweep, out_dir: Path) -
     caption = ("Mean of each measurement against the training step, one line per training run with its 95% "
                f"bootstrap band over examples ({data.resamples:,} resamples); the dashed line and grey band are base "
                "Wan." + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
-    return _save(fig, out_dir, "metric_vs_step", "Measurements against the training step", caption)
+    return save_figure(fig, out_dir, "metric_vs_step", "Measurements against the training step", caption)

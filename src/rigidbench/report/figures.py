@@ -39,7 +39,8 @@ class FigureFile:
     width_in: float
 
 
-def _new_figure(width_in: float, height_in: float):
+def new_figure(width_in: float, height_in: float):
+    """A matplotlib Figure of this size with the constrained layout, on an Agg canvas (no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -48,7 +49,8 @@ def _new_figure(width_in: float, height_in: float):
     return fig
 
 
-def _save(fig, out_dir: Path, key: str, title: str, caption: str) -> FigureFile:
+def save_figure(fig, out_dir: Path, key: str, title: str, caption: str) -> FigureFile:
+    """Write ``fig`` as ``out_dir/<key>.png`` (at DPI) and ``.pdf`` (no creation date, so reruns match)."""
     png, pdf = out_dir / f"{key}.png", out_dir / f"{key}.pdf"
     fig.savefig(png, dpi=DPI)
     # The constrained layout is resolution-independent: keep the one just computed for the PDF
@@ -128,7 +130,7 @@ def ssim_vs_ate3d(data: ReportData, out_dir: Path) -> FigureFile:
     ks, ka = t.metric_index("ssim"), t.metric_index("ate3d")
     o = data.overall
     colors = model_colors(len(t.models))
-    fig = _new_figure(7.0, 5.0)
+    fig = new_figure(7.0, 5.0)
     ax = fig.add_subplot()
     labelled = []
     for m, model in enumerate(t.models):
@@ -148,7 +150,7 @@ def ssim_vs_ate3d(data: ReportData, out_dir: Path) -> FigureFile:
     caption = ("Model means with 95% bootstrap intervals over examples. The ATE-3D axis is reversed, and the "
                "correlation is computed against negative ATE-3D; its interval resamples models "
                f"({data.resamples:,} resamples, shown with at least 3 models).")
-    return _save(fig, out_dir, "ssim_vs_ate3d", "SSIM against ATE-3D", caption)
+    return save_figure(fig, out_dir, "ssim_vs_ate3d", "SSIM against ATE-3D", caption)
 
 
 def ate3d_by_task(data: ReportData, out_dir: Path, metric: str = "ate3d") -> FigureFile:
@@ -157,7 +159,7 @@ def ate3d_by_task(data: ReportData, out_dir: Path, metric: str = "ate3d") -> Fig
     k = t.metric_index(metric)
     n_models, n_tasks = len(t.models), len(data.tasks)
     colors = model_colors(n_models)
-    fig = _new_figure(7.5, 1.2 + 0.16 * n_tasks * (n_models + 1))
+    fig = new_figure(7.5, 1.2 + 0.16 * n_tasks * (n_models + 1))
     ax = fig.add_subplot()
     iv = data.by_task
     for m, model in enumerate(t.models):
@@ -174,7 +176,7 @@ def ate3d_by_task(data: ReportData, out_dir: Path, metric: str = "ate3d") -> Fig
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     caption = (f"Mean {name} for each model and task with 95% bootstrap intervals; bars within each task follow "
                "the order of the key.")
-    return _save(fig, out_dir, f"{metric}_by_task", f"{name} by task", caption)
+    return save_figure(fig, out_dir, f"{metric}_by_task", f"{name} by task", caption)
 
 
 def metric_intervals(data: ReportData, out_dir: Path) -> FigureFile:
@@ -184,7 +186,7 @@ def metric_intervals(data: ReportData, out_dir: Path) -> FigureFile:
     ncols = min(5, n_metrics)
     nrows = math.ceil(n_metrics / ncols)
     colors = model_colors(n_models)
-    fig = _new_figure(2.6 * ncols + 1.2, nrows * (0.9 + 0.28 * n_models))
+    fig = new_figure(2.6 * ncols + 1.2, nrows * (0.9 + 0.28 * n_models))
     axes = fig.subplots(nrows, ncols, squeeze=False, sharey=True)
     from matplotlib.ticker import MaxNLocator
 
@@ -214,7 +216,7 @@ def metric_intervals(data: ReportData, out_dir: Path) -> FigureFile:
     caption = ("Points are model means and bars 95% percentile bootstrap intervals over evaluation examples "
                f"({data.resamples:,} resamples). Models follow the same row order in every panel."
                + (" BGDrift is multiplied by 10³." if "bgdrift" in t.metrics else ""))
-    return _save(fig, out_dir, "metric_intervals", "Uncertainty across all measurements", caption)
+    return save_figure(fig, out_dir, "metric_intervals", "Uncertainty across all measurements", caption)
 
 
 def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:
@@ -228,7 +230,7 @@ def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:
     ncols = 5 if n_models <= 3 else 3 if n_models <= 8 else 2
     nrows = math.ceil(n_metrics / ncols)
     side = max(2.6, 0.45 * n_models + 1.4)
-    fig = _new_figure(side * ncols + 0.8, side * nrows)
+    fig = new_figure(side * ncols + 0.8, side * nrows)
     axes = fig.subplots(nrows, ncols, squeeze=False)
     cmap = matplotlib.colormaps["RdBu"].with_extremes(bad="0.9")
     image = None
@@ -261,12 +263,7 @@ def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:
     caption = ("Each cell is the probability that the row model is better than the column model on the same "
                "example (ties count one half). Rows and columns are ordered by the model mean, best first. Bold "
                f"entries have a paired bootstrap 95% interval ({data.resamples:,} resamples) that excludes 0.5.")
-    return _save(fig, out_dir, "poi_heatmaps", "Matched probability of improvement", caption)
-
-
-#: public names for the figure helpers other report modules share
-new_figure = _new_figure
-save_figure = _save
+    return save_figure(fig, out_dir, "poi_heatmaps", "Matched probability of improvement", caption)
 
 
 def build_figures(data: ReportData, out_dir: Path) -> list[FigureFile]:

@@ -183,7 +183,7 @@ def model_table(data: ReportData) -> Table:
                  ("",) + tuple(metric_arrow(m) for m in t.metrics), rows, groups=metric_groups(t.metrics))
 
 
-def _grouping(data: ReportData, by: str):
+def grouping(data: ReportData, by: str):
     """(per-example labels, group ids in display order, Intervals (M, G, K), label function) for 'task' or
     'partition'."""
     t = data.table
@@ -194,16 +194,18 @@ def _grouping(data: ReportData, by: str):
     raise ValueError(f"unknown grouping {by!r}; use 'task' or 'partition'")
 
 
-_GROUP_WORDS = {"task": ("task", "by_task.csv"),
+#: grouping ('task' or 'partition') -> (its word in captions, the CSV file of its per-group means)
+GROUP_WORDS = {"task": ("task", "by_task.csv"),
                 "partition": ("evaluation partition", "by_partition.csv")}
-_PARTITION_NOTE = ("ID: training scenes and objects; Scene, Object, Both: held-out scenes, objects, or both.")
+#: the caption sentence that explains the evaluation partitions' labels
+PARTITION_NOTE = ("ID: training scenes and objects; Scene, Object, Both: held-out scenes, objects, or both.")
 
 
 def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None = None) -> Table:
     """Model x (metric, group) for a few metrics (default the headline ATE-3D and SSIM), as the paper's task
     and partition tables: mean [95% CI] per cell, best / second-best within each group."""
     t = data.table
-    labels, groups, iv, label = _grouping(data, by)
+    labels, groups, iv, label = grouping(data, by)
     metrics = metrics or headline_metrics(t.metrics)
     counts = [int(np.sum(labels == g)) for g in groups]
     columns, header, spans = [], [], []
@@ -216,13 +218,13 @@ def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None =
                                        counts[g], decimals, marks[m], bool(t.skipped[m, k]),
                                        scale=display_scale(metric)) for m in range(len(t.models))])
         header += [label(g) for g in groups]
-        spans.append((f"{metric_label(metric)}{_ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
+        spans.append((f"{metric_label(metric)}{ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
     rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
-    word, csv_name = _GROUP_WORDS[by]
+    word, csv_name = GROUP_WORDS[by]
     names = " and ".join(METRICS[m].display_name for m in metrics)
     sizes = ", ".join(f"{label(g)} {c}" for g, c in zip(groups, counts))
     caption = (f"{names} by {word}: the mean over that {word}'s examples ({sizes}) with its 95% bootstrap interval. "
-               + (_PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
+               + (PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
                + f" Every measurement by {word} is in the table below and in {csv_name}." + scale_note(metrics))
     return Table(f"by_{by}", f"By {word}", caption, ("Model",) + tuple(header), ("",) * (1 + len(header)), rows,
                  groups=tuple(spans))
@@ -231,7 +233,7 @@ def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None =
 def all_metrics_table(data: ReportData, by: str) -> Table:
     """(group, model) x every metric: means only (intervals in the CSV), marks within each group."""
     t = data.table
-    labels, groups, iv, label = _grouping(data, by)
+    labels, groups, iv, label = grouping(data, by)
     decimals = [column_decimals(iv.mean[:, :, k], metric) for k, metric in enumerate(t.metrics)]
     rows, breaks = [], []
     for g, group in enumerate(groups):
@@ -245,9 +247,9 @@ def all_metrics_table(data: ReportData, by: str) -> Table:
                                      scale=display_scale(metric))
                           for k, metric in enumerate(t.metrics))
             rows.append((Cell(f"{label(group)} ({n})" if m == 0 else ""), Cell(model)) + cells)
-    word, csv_name = _GROUP_WORDS[by]
+    word, csv_name = GROUP_WORDS[by]
     caption = (f"Every measurement by {word} (examples in parentheses), means only; the 95% intervals are in "
-               f"{csv_name}. " + (_PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
+               f"{csv_name}. " + (PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
                + scale_note(t.metrics))
     return Table(f"all_by_{by}", f"All measurements by {word}", caption,
                  (word.split()[-1].capitalize(), "Model") + tuple(metric_label(m) for m in t.metrics),
@@ -329,7 +331,7 @@ def poi_table(data: ReportData, metric: str) -> Table | None:
                f"model mean, best first; bold entries have a paired 95% bootstrap interval ({data.resamples:,} "
                "resamples) that excludes 0.5 (on the HTML page, cells shade blue above 0.5 and red below). Every "
                "measurement's matrix is in poi_matrix.csv.")
-    return Table(f"poi_{metric}", f"{name}{_ARROW_TEXT[metric_arrow(metric)]}: probability of improvement", caption,
+    return Table(f"poi_{metric}", f"{name}{ARROW_TEXT[metric_arrow(metric)]}: probability of improvement", caption,
                  ("Row beats column",) + tuple(t.models[j] for j in order), ("",) * (1 + len(order)), tuple(rows),
                  vertical_header=True)
 
@@ -347,7 +349,8 @@ def build_tables(data: ReportData) -> list[Table]:
 
 # ------------------------------------------------------------------------------------ renderers
 
-_ARROW_TEXT = {"up": " ↑", "down": " ↓", "": ""}
+#: a metric's better direction (``metric_arrow``) as text after its label
+ARROW_TEXT = {"up": " ↑", "down": " ↓", "": ""}
 _ARROW_TEX = {"up": r"$\uparrow$", "down": r"$\downarrow$", "": ""}
 
 
@@ -367,7 +370,7 @@ def _md_cell(cell: Cell) -> str:
 
 def to_markdown(table: Table) -> str:
     """GitHub-flavoured Markdown: bold best, <u>underlined</u> second-best, caption below."""
-    header = [_md_escape(h) + _ARROW_TEXT[a] for h, a in zip(table.header, table.arrows)]
+    header = [_md_escape(h) + ARROW_TEXT[a] for h, a in zip(table.header, table.arrows)]
     align = [":--"] * table.n_label_columns + ["--:"] * (len(header) - table.n_label_columns)
     lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |"]
     lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in table.rows]
@@ -461,7 +464,7 @@ def to_html(table: Table) -> str:
         lines.append("<tr>" + "".join(cells) + "</tr>")
     heads = []
     for i, (h, a) in enumerate(zip(table.header, table.arrows)):
-        text = html.escape(h + _ARROW_TEXT[a])
+        text = html.escape(h + ARROW_TEXT[a])
         if i < table.n_label_columns:
             heads.append(f"<th class=label>{text}</th>")
         else:
@@ -480,13 +483,14 @@ def to_html(table: Table) -> str:
 # ------------------------------------------------------------------------------------------ CSV
 
 
-def _num(x) -> str:
+def csv_number(x) -> str:
     """Float as its shortest round-tripping repr; NaN as an empty field."""
     x = float(x)
     return repr(x) if math.isfinite(x) else ""
 
 
-def _write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+def write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+    """Write one CSV file (header row, then ``rows``); returns ``path``."""
     with open(path, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(header)
@@ -506,11 +510,11 @@ def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
         marks = marks_for(data.overall.mean[:, k], metric, data.ranked & ~t.skipped[:, k], decimals)
         for m, model in enumerate(t.models):
             o = data.overall
-            rows.append([model, metric, int(hib[k]), _num(o.mean[m, k]), _num(o.lo[m, k]), _num(o.hi[m, k]),
-                         int(o.n_finite[m, k]), n, int(t.skipped[m, k]), marks[m]])
-    paths.append(_write_csv(out_dir / "model_metrics.csv", ["model", "metric", "higher_is_better", "mean", "ci_low",
-                                                            "ci_high", "n_finite", "n_examples", "skipped", "mark"],
-                            rows))
+            rows.append([model, metric, int(hib[k]), csv_number(o.mean[m, k]), csv_number(o.lo[m, k]),
+                         csv_number(o.hi[m, k]), int(o.n_finite[m, k]), n, int(t.skipped[m, k]), marks[m]])
+    paths.append(write_csv(out_dir / "model_metrics.csv", ["model", "metric", "higher_is_better", "mean", "ci_low",
+                                                           "ci_high", "n_finite", "n_examples", "skipped", "mark"],
+                           rows))
     for key, labels, names, iv in (("by_task", t.tasks, data.tasks, data.by_task),
                                    ("by_partition", t.partitions, data.partitions, data.by_partition)):
         rows = []
@@ -520,34 +524,36 @@ def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
                 decimals = column_decimals(iv.mean[:, :, k], metric)
                 marks = marks_for(iv.mean[:, g, k], metric, data.ranked & ~t.skipped[:, k], decimals)
                 for m, model in enumerate(t.models):
-                    rows.append([model, group, metric, _num(iv.mean[m, g, k]), _num(iv.lo[m, g, k]),
-                                 _num(iv.hi[m, g, k]), int(iv.n_finite[m, g, k]), n_group, marks[m]])
+                    rows.append([model, group, metric, csv_number(iv.mean[m, g, k]), csv_number(iv.lo[m, g, k]),
+                                 csv_number(iv.hi[m, g, k]), int(iv.n_finite[m, g, k]), n_group, marks[m]])
         column = key.removeprefix("by_")
-        paths.append(_write_csv(out_dir / f"{key}.csv", ["model", column, "metric", "mean", "ci_low", "ci_high",
-                                                         "n_finite", "n_examples", "mark"], rows))
+        paths.append(write_csv(out_dir / f"{key}.csv", ["model", column, "metric", "mean", "ci_low", "ci_high",
+                                                        "n_finite", "n_examples", "mark"], rows))
     if len(t.models) >= 2:
         d, p = data.paired_diff, data.paired_poi
-        rows = [[t.models[m], t.models[data.baseline], metric, int(hib[k]), _num(d.mean[m, k]), _num(d.lo[m, k]),
-                 _num(d.hi[m, k]), _num(p.mean[m, k]), _num(p.lo[m, k]), _num(p.hi[m, k]), int(d.n_finite[m, k])]
+        rows = [[t.models[m], t.models[data.baseline], metric, int(hib[k]), csv_number(d.mean[m, k]),
+                 csv_number(d.lo[m, k]), csv_number(d.hi[m, k]), csv_number(p.mean[m, k]), csv_number(p.lo[m, k]),
+                 csv_number(p.hi[m, k]), int(d.n_finite[m, k])]
                 for m in range(len(t.models)) if m != data.baseline for k, metric in enumerate(t.metrics)]
-        paths.append(_write_csv(out_dir / "paired_changes.csv",
-                                ["model", "baseline", "metric", "higher_is_better", "diff_mean", "diff_ci_low",
-                                 "diff_ci_high", "poi", "poi_ci_low", "poi_ci_high", "n_matched"], rows))
-        rows = [[metric, t.models[i], t.models[j], _num(pm.estimate[i, j]), _num(pm.lo[i, j]), _num(pm.hi[i, j]),
-                 int(pm.n_matched[i, j]), int(bool(pm.significant[i, j]))]
+        paths.append(write_csv(out_dir / "paired_changes.csv",
+                               ["model", "baseline", "metric", "higher_is_better", "diff_mean", "diff_ci_low",
+                                "diff_ci_high", "poi", "poi_ci_low", "poi_ci_high", "n_matched"], rows))
+        rows = [[metric, t.models[i], t.models[j], csv_number(pm.estimate[i, j]), csv_number(pm.lo[i, j]),
+                 csv_number(pm.hi[i, j]), int(pm.n_matched[i, j]), int(bool(pm.significant[i, j]))]
                 for metric, pm in zip(t.metrics, data.poi_matrices)
                 for i in range(len(t.models)) for j in range(len(t.models)) if i != j]
-        paths.append(_write_csv(out_dir / "poi_matrix.csv", ["metric", "model", "opponent", "poi", "ci_low", "ci_high",
-                                                             "n_matched", "significant"], rows))
+        paths.append(write_csv(out_dir / "poi_matrix.csv", ["metric", "model", "opponent", "poi", "ci_low", "ci_high",
+                                                            "n_matched", "significant"], rows))
     c = data.correlation
     if c is not None:
         ci_p = c["pearson_ci"] if c["has_ci"] else (math.nan, math.nan)
         ci_s = c["spearman_ci"] if c["has_ci"] else (math.nan, math.nan)
-        paths.append(_write_csv(out_dir / "correlation.csv",
-                                ["x", "y", "n_models", "pearson", "pearson_ci_low", "pearson_ci_high", "spearman",
-                                 "spearman_ci_low", "spearman_ci_high"],
-                                [["ssim", "-ate3d", c["n_models"], _num(c["pearson"]), _num(ci_p[0]), _num(ci_p[1]),
-                                  _num(c["spearman"]), _num(ci_s[0]), _num(ci_s[1])]]))
+        paths.append(write_csv(out_dir / "correlation.csv",
+                               ["x", "y", "n_models", "pearson", "pearson_ci_low", "pearson_ci_high", "spearman",
+                                "spearman_ci_low", "spearman_ci_high"],
+                               [["ssim", "-ate3d", c["n_models"], csv_number(c["pearson"]), csv_number(ci_p[0]),
+                                 csv_number(ci_p[1]), csv_number(c["spearman"]), csv_number(ci_s[0]),
+                                 csv_number(ci_s[1])]]))
     return paths
 
 

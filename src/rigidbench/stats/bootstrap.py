@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 _MAX_CHUNK_ELEMENTS = 1 << 21
 
 
-def _check_options(n_resamples: int, confidence: float) -> None:
+def check_options(n_resamples: int, confidence: float) -> None:
     """Validate bootstrap options; raises ValueError naming the bad argument."""
     if int(n_resamples) != n_resamples or n_resamples < 1:
         raise ValueError(f"n_resamples must be a positive integer, got {n_resamples!r}")
@@ -104,7 +104,7 @@ def bootstrap_ci(
     chunk_elements: int = _MAX_CHUNK_ELEMENTS,
 ):
     """values: (..., N) float per-example scores. Returns (mean, lo, hi): floats for (N,), else (...) float64 arrays."""
-    _check_options(n_resamples, confidence)
+    check_options(n_resamples, confidence)
     arr = np.asarray(values, dtype=np.float64)
     if arr.ndim == 0:
         raise ValueError("bootstrap_ci needs per-example values with shape (..., N), got a scalar")

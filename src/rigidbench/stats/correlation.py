@@ -12,7 +12,7 @@ import logging
 
 import numpy as np
 
-from rigidbench.stats.bootstrap import _check_options
+from .bootstrap import check_options
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ def correlation_across_models(
     x, y, n_resamples: int = 20000, confidence: float = 0.95, seed: int = 0
 ) -> dict:
     """x, y: (M,) float model means on two metrics. Returns dict of pearson, spearman, their (lo, hi) CIs and counts."""
-    _check_options(n_resamples, confidence)
+    check_options(n_resamples, confidence)
     x_arr = np.asarray(x, dtype=np.float64)
     y_arr = np.asarray(y, dtype=np.float64)
     if x_arr.ndim != 1 or x_arr.shape != y_arr.shape:

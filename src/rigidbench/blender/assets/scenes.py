@@ -38,11 +38,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from rigidbench.assets import _furniture as F, _paint, materials as M
-from rigidbench.assets._mesh import Part, box, grid_plane, join, rot_z, to_object
-from rigidbench.assets._styles import style_for
-from rigidbench.assets.loader import import_objects
-from rigidbench.config import SceneConfig, SupportConfig
+from ...config import SceneConfig, SupportConfig
+from . import _furniture as F, _paint, materials as M
+from ._mesh import Part, box, grid_plane, join, rot_z, to_object
+from ._styles import style_for
+from .loader import import_objects
 
 log = logging.getLogger(__name__)
 

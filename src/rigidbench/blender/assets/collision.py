@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigidbench.assets.standin import Mesh
+from .standin import Mesh
 
 MAX_HULL_VERTICES = 200
 

@@ -17,12 +17,12 @@ from typing import Callable
 
 import numpy as np
 
-from rigidbench.assets import _paint, materials as M
-from rigidbench.assets._mesh import Part, Z_TO_X, box, fit, join, revolve, rounded_box, sphere, sweep, to_object
-from rigidbench.assets.loader import load_mesh_object, load_mesh_vertices
-from rigidbench.assets.standin import object_mesh, ramp_mesh
-from rigidbench.config import MaterialConfig, ObjectConfig
-from rigidbench.spec.types import RampShape
+from ...config import MaterialConfig, ObjectConfig
+from ...spec.types import RampShape
+from . import _paint, materials as M
+from ._mesh import Part, Z_TO_X, box, fit, join, revolve, rounded_box, sphere, sweep, to_object
+from .loader import load_mesh_object, load_mesh_vertices
+from .standin import object_mesh, ramp_mesh
 
 log = logging.getLogger(__name__)
 

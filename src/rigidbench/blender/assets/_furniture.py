@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigidbench.assets._mesh import (Part, box, cylinder, join, polygon_prism, revolve, rot_x, rot_y, rot_z,
-                                     rounded_box, sphere, sweep)
+from ._mesh import (Part, box, cylinder, join, polygon_prism, revolve, rot_x, rot_y, rot_z,
+                    rounded_box, sphere, sweep)
 
 Pieces = list[tuple[Part, str]]
 

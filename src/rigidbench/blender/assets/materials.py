@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from typing import Callable
 
-from rigidbench.assets._nodes import Graph, cached_material, painted_image, srgb_to_linear
-from rigidbench.config import MaterialConfig
+from ...config import MaterialConfig
+from ._nodes import Graph, cached_material, painted_image, srgb_to_linear
 
 RAMP_PATTERNS = ("wood", "marble", "concrete", "plain")
 

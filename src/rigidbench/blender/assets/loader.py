@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rigidbench.assets import materials as M
-from rigidbench.assets._mesh import Part, fit, join, to_object
-from rigidbench.config import ObjectConfig
+from ...config import ObjectConfig
+from . import materials as M
+from ._mesh import Part, fit, join, to_object
 
 log = logging.getLogger(__name__)
 

@@ -13,9 +13,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from rigidbench.assets import _furniture as F, _paint, materials as M
-from rigidbench.assets._mesh import box, grid_plane, polygon_prism, revolve
-from rigidbench.config import SceneConfig
+from ...config import SceneConfig
+from . import _furniture as F, _paint, materials as M
+from ._mesh import box, grid_plane, polygon_prism, revolve
 
 Factory = Callable[[str], Any]
 
