@@ -1,4 +1,4 @@
-"""Loading the authors' release's checkpoint formats (train/load.py) into diffusers' WanTransformer3DModel:
+"""Loading the authors' release's checkpoint formats (predictors/wan_checkpoints.py) into diffusers'
 DiffSynth-named LoRA files (peft lora_A/lora_B with ".default.", kohya lora_down/lora_up + alpha), the
 release's Lightning .ckpt, and full state dicts with DiffSynth names (safetensors and .pt); through the
 Wan predictor's detect/load functions and probe --backbone too. Expected weights are computed here,
@@ -16,7 +16,7 @@ pytest.importorskip("safetensors")
 from safetensors.torch import save_file  # noqa: E402
 
 from rigidbench.errors import UserError  # noqa: E402
-from rigidbench.train import load  # noqa: E402
+from rigidbench.predictors import wan_checkpoints as load  # noqa: E402
 
 CONFIG = dict(patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=8, in_channels=4, out_channels=4,
               text_dim=16, freq_dim=16, ffn_dim=32, num_layers=2, cross_attn_norm=True,

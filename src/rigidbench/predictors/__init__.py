@@ -1,7 +1,8 @@
 """Everything that makes a video from a reference example, behind one ``Predictor`` interface and
 one registry, ``PREDICTORS`` (``rigidbench predict --list`` prints it).
 
-Adding a predictor is one module plus one ``PREDICTORS.add(PredictorInfo(...))`` line here; a
+Adding a predictor is one module plus one ``PREDICTORS.add(PredictorInfo(...))`` line here (its options,
+if any: a dataclass in ``options``, named by the entry and by the class's ``options_type``); a
 user's own model needs no registration at all: ``rigidbench predict mypackage.module:MyModel``
 loads any ``Predictor`` subclass or ``f(sample, ctx) -> Prediction`` function by its path.
 """
@@ -12,6 +13,8 @@ from ..errors import UserError
 from ..registry import LazyRegistry
 from .base import (SEED_RULE, FailureMode, FunctionPredictor, Kind, ModelInputs, PredictContext, Prediction, Predictor,
                    PredictorInfo, example_seed, model_inputs)
+from .options import (CosmosOptions, HostedOptions, ModelOptions, WanOptions, audit_options, format_options,
+                      legacy_flags, model_options, options_type, parse_model_args, resolve_options)
 
 PREDICTORS: LazyRegistry[PredictorInfo] = LazyRegistry("predictor")
 
@@ -42,13 +45,13 @@ _failure_mode("mass", "counterfactuals:mass", "re-simulated with actor masses al
 _failure_mode("depth-offset", "counterfactuals:depth_offset", "actors re-rendered 0.5 s m nearer the camera",
               needs_blender=True)
 
-# Video models run locally through diffusers (paper, appendix B.1); options in predictors/local.py.
+# Video models run locally through diffusers (paper, appendix B.1); their options: predictors/options.py.
 PREDICTORS.add(PredictorInfo("wan-2.2", "rigidbench.predictors.wan:WanPredictor",
                              "Wan 2.2 TI2V-5B (diffusers), 1280x704, 49 frames at 24 fps, 50 steps, bf16", Kind.LOCAL,
-                             aliases=("wan",)))
+                             aliases=("wan",), options=WanOptions))
 PREDICTORS.add(PredictorInfo("cosmos-2.5", "rigidbench.predictors.cosmos:CosmosPredictor",
                              "Cosmos Predict 2.5-2B post-trained (diffusers), 1280x704, 33 frames at 16 fps, 50 steps, "
-                             "bf16", Kind.LOCAL, aliases=("cosmos",)))
+                             "bf16", Kind.LOCAL, aliases=("cosmos",), options=CosmosOptions))
 
 
 ENTRY_POINT_GROUP = "rigidbench.predictors"
@@ -69,7 +72,8 @@ def load_entry_points() -> list[str]:
 
 
 def _hosted(name: str, description: str) -> None:
-    PREDICTORS.add(PredictorInfo(name, "rigidbench.predictors.hosted:HostedPredictor", description, Kind.HOSTED))
+    PREDICTORS.add(PredictorInfo(name, "rigidbench.predictors.hosted:HostedPredictor", description, Kind.HOSTED,
+                                 options=HostedOptions))
 
 
 # Hosted video models through Replicate (paid; configs/models.yaml holds each one's inputs).
@@ -99,6 +103,7 @@ def failure_modes() -> tuple[str, ...]:
     return tuple(n for n, info in PREDICTORS.items() if info.kind == Kind.FAILURE_MODE)
 
 
-__all__ = ["PREDICTORS", "SEED_RULE", "FailureMode", "FunctionPredictor", "Kind", "ModelInputs", "PredictContext",
-           "Prediction", "Predictor", "PredictorInfo", "example_seed", "failure_modes", "load_entry_points",
-           "model_inputs", "predictor_info"]
+__all__ = ["PREDICTORS", "SEED_RULE", "CosmosOptions", "FailureMode", "FunctionPredictor", "HostedOptions", "Kind",
+           "ModelInputs", "ModelOptions", "PredictContext", "Prediction", "Predictor", "PredictorInfo", "WanOptions",
+           "audit_options", "example_seed", "failure_modes", "format_options", "legacy_flags", "load_entry_points",
+           "model_inputs", "model_options", "options_type", "parse_model_args", "predictor_info", "resolve_options"]

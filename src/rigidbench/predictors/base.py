@@ -29,7 +29,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 import numpy as np
 
@@ -91,7 +91,8 @@ class PredictContext:
     its own, ``example_seed(--seed, example id)``; it is the base seed in settings), for predictors that render a
     directory in which to keep their bundle (None: a temporary one), the output directory of the run
     (where a predictor may keep per-example state such as a hosted prediction id) and model options
-    from the command line (e.g. offload, checkpoint, concurrency)."""
+    from the command line (e.g. offload, checkpoint, concurrency; ``predictors.options.model_options``
+    makes them: JSON values, only those given), which a predictor reads typed with ``Predictor.options``."""
 
     run: RunContext = field(default_factory=RunContext)
     severity: float = 1.0
@@ -128,7 +129,9 @@ def model_inputs(sample) -> ModelInputs:
 
 @dataclass(frozen=True)
 class PredictorInfo:
-    """Registry entry of a predictor. ``target`` is "module:attr"; see the module docstring."""
+    """Registry entry of a predictor. ``target`` is "module:attr"; see the module docstring. ``options``:
+    the dataclass of its options (``predictors.options``; the same as its class's ``options_type``), None
+    when it takes none, so they are known from the name alone (nothing imported, no weights loaded)."""
 
     name: str
     target: str
@@ -137,6 +140,7 @@ class PredictorInfo:
     needs_blender: bool = False
     writes_state: bool = False
     aliases: tuple[str, ...] = ()
+    options: type | None = None
 
     def create(self) -> "Predictor":
         """Import the target and return a ready ``Predictor``."""
@@ -154,9 +158,12 @@ class Predictor(ABC):
     """One video model (or failure mode); ``info`` is its registry entry.
 
     ``paid``: each example is a paid call to a hosted API (``--dry-run`` and ``audit`` count them);
-    ``concurrency(ctx)``: how many examples the predict stage may run at once in threads."""
+    ``concurrency(ctx)``: how many examples the predict stage may run at once in threads;
+    ``options_type``: the dataclass of its options (a ``predictors.options.ModelOptions``; None: none), which
+    ``options(ctx)`` reads from ``ctx.options``."""
 
     paid: bool = False
+    options_type: ClassVar[type | None] = None
 
     def __init__(self, info: PredictorInfo):
         self.info = info
@@ -164,6 +171,14 @@ class Predictor(ABC):
     @property
     def name(self) -> str:
         return self.info.name
+
+    def options(self, ctx: PredictContext):
+        """This predictor's options in ``ctx.options``, typed and checked (an instance of ``options_type``;
+        options of other models are ignored; a bad value is a UserError naming the option); None when it
+        takes none."""
+        if self.options_type is None:
+            return None
+        return self.options_type.from_mapping(ctx.options, model=self.name)
 
     @abstractmethod
     def predict(self, sample, ctx: PredictContext) -> Prediction:

@@ -33,12 +33,12 @@ import importlib.metadata as md
 import json
 import logging
 import sys
-from pathlib import Path
 from typing import Any
 
 from ..errors import PredictionError, RigidBenchError, WeightsUnavailable
 from .base import PredictContext
-from .local import LocalVideoModel, option_flag
+from .local import LocalVideoModel
+from .options import CosmosOptions
 
 log = logging.getLogger(__name__)
 
@@ -155,6 +155,7 @@ def padding_mask_available() -> bool:
 
 
 class CosmosPredictor(LocalVideoModel):
+    options_type = CosmosOptions
     model_id = "nvidia/Cosmos-Predict2.5-2B"
     default_revision = "diffusers/base/post-trained"
     pipeline_class = "Cosmos2_5_PredictBasePipeline"
@@ -167,7 +168,7 @@ class CosmosPredictor(LocalVideoModel):
         self._noticed = False
 
     def guardrail(self, ctx: PredictContext) -> str:
-        return "pass-through (--no-guardrail)" if option_flag(ctx, "no_guardrail") else "cosmos_guardrail.CosmosSafetyChecker"
+        return "pass-through (--no-guardrail)" if self.options(ctx).no_guardrail else "cosmos_guardrail.CosmosSafetyChecker"
 
     def extra_settings(self, ctx: PredictContext) -> dict[str, Any]:
         return {"guardrail": self.guardrail(ctx)}
@@ -179,7 +180,7 @@ class CosmosPredictor(LocalVideoModel):
 
     def extra_info(self, ctx: PredictContext) -> dict[str, Any]:
         info: dict[str, Any] = {"guardrail": self.guardrail(ctx), "conditioning": self.conditioning()}
-        if option_flag(ctx, "no_guardrail"):
+        if self.options(ctx).no_guardrail:
             info["licence_notice"] = LICENCE_NOTICE
         else:
             try:
@@ -189,7 +190,7 @@ class CosmosPredictor(LocalVideoModel):
         return info
 
     def check_runnable(self, ctx: PredictContext) -> None:
-        if option_flag(ctx, "no_guardrail"):
+        if self.options(ctx).no_guardrail:
             if not self._noticed:
                 print(LICENCE_NOTICE, file=sys.stderr)
                 log.warning("cosmos-2.5 runs without its guardrail (--no-guardrail)")
@@ -208,12 +209,11 @@ class CosmosPredictor(LocalVideoModel):
     def needs_padding_mask(self, ctx: PredictContext) -> bool:
         """Whether the transformer concatenates a padding mask (its forward then calls torchvision): from the
         injected pipeline or model_path's transformer/config.json; the hub model does (True)."""
-        injected = ctx.option("pipeline")
-        if injected is not None:
-            return bool(getattr(injected.transformer.config, "concat_padding_mask", False))
-        path = ctx.option("model_path")
-        if path is not None:
-            config = Path(path).expanduser() / "transformer" / "config.json"
+        o = self.options(ctx)
+        if o.pipeline is not None:
+            return bool(getattr(o.pipeline.transformer.config, "concat_padding_mask", False))
+        if o.model_path is not None:
+            config = o.model_path.expanduser() / "transformer" / "config.json"
             try:
                 return bool(json.loads(config.read_text()).get("concat_padding_mask", True))
             except (OSError, ValueError):
@@ -226,7 +226,7 @@ class CosmosPredictor(LocalVideoModel):
         return self.from_pretrained(Cosmos2_5_PredictBasePipeline, ctx, dtype, safety_checker=self.safety_checker(ctx))
 
     def safety_checker(self, ctx: PredictContext):
-        return pass_through_checker() if option_flag(ctx, "no_guardrail") else guardrail_checker()
+        return pass_through_checker() if self.options(ctx).no_guardrail else guardrail_checker()
 
     def configure(self, pipe, ctx: PredictContext, injected: bool):
         if injected:  # the run's guardrail setting replaces whatever checker the injected pipeline had

@@ -55,10 +55,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..config import FieldReader, config_file, read_config_yaml
-from ..errors import ConfigError, PredictionError, UserError
+from ..errors import ConfigError, PredictionError
 from ..jsonio import write_json
 from ..folders import VIDEO_EXTENSIONS, PredictionsFolder
 from .base import SEED_RULE, PredictContext, Prediction, Predictor, PredictorInfo, model_inputs
+from .options import HostedOptions
 from .replicate import (TOKEN_ENV, CallStats, ClientSettings, CreationUncertain, Deadline, ReplicateClient,
                         ReplicateError, StopRequested, base_url_from_env, output_url, public_url, token_from_env)
 
@@ -329,9 +330,11 @@ class _RecentPredictions:
 
 
 class HostedPredictor(Predictor):
-    """A hosted video model on Replicate, configured by its row of models.yaml (found by registry name)."""
+    """A hosted video model on Replicate, configured by its row of models.yaml (found by registry name);
+    its options: ``options.HostedOptions`` (concurrency, repay_expired)."""
 
     paid = True
+    options_type = HostedOptions
 
     def __init__(self, info: PredictorInfo):
         super().__init__(info)
@@ -355,10 +358,7 @@ class HostedPredictor(Predictor):
         return self.config(ctx).model(self.info.name)
 
     def concurrency(self, ctx: PredictContext) -> int:
-        value = ctx.option("concurrency", 8)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise UserError(f"--concurrency must be a positive integer, got {value!r}")
-        return value
+        return self.options(ctx).concurrency  # an int >= 1 (default 8)
 
     def settings(self, ctx: PredictContext) -> dict[str, Any]:
         """What makes the videos differ: the model, its fixed inputs, the image as sent and the seed (None:
@@ -495,7 +495,7 @@ class HostedPredictor(Predictor):
         prediction, resumed, adopted, replaced = None, False, False, None
         state = _read_state(state_path)
         same = state is not None and state.get("fingerprint") == fingerprint
-        repay = bool(ctx.option("repay_expired", False))
+        repay = self.options(ctx).repay_expired
         if state and isinstance(state.get("prediction_id"), str):
             if same and state.get("status") not in RESTART_STATUSES:
                 prediction = self._resume(client, state["prediction_id"], sample_id, deadline, stats, repay)

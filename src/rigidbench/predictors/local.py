@@ -2,7 +2,8 @@
 loaded once, lazily, on the first example and kept until ``close()``; the paper's generation
 settings with per-run overrides; the call that turns one reference example into frames.
 
-Options (``PredictContext.options``; None means "not given"):
+Options (``options.LocalOptions``, read typed with ``Predictor.options(ctx)`` from ``PredictContext.options``;
+None means "not given"):
 
 - ``model_path``: a local copy of the model (a diffusers pipeline directory) instead of the hub id;
 - ``revision``: the hub revision (default: the model's, see each model);
@@ -48,21 +49,13 @@ from ..benchmark import NEGATIVE_PROMPT
 from ..errors import PredictionError, UserError, WeightsUnavailable
 from ..perception.device import resolve_device
 from .base import SEED_RULE, PredictContext, Prediction, Predictor, model_inputs
+from .options import DTYPES, LocalOptions  # noqa: F401 (DTYPES re-exported)
 
 log = logging.getLogger(__name__)
 
-DTYPES = ("bfloat16", "float16", "float32")
 GENERATOR = "torch.Generator('cpu').manual_seed(seed of the example)"
 STORAGE = "lossless H.264 RGB (libx264rgb, crf 0, 4:4:4, no chroma subsampling): decodes to exactly the frames"
 FRAME_CONVERSION = "pipeline frames in [0, 1] (output_type='np'), x 255, rounded to uint8"
-
-
-def option_flag(ctx: PredictContext, name: str) -> bool:
-    """A boolean option given as a bool or a string ("1", "true", "yes", "on")."""
-    value = ctx.option(name, False)
-    if isinstance(value, str):
-        return value.strip().lower() in ("1", "true", "yes", "on")
-    return bool(value)
 
 
 def hub_commit(repo_id: str, revision: str | None) -> str | None:
@@ -102,8 +95,10 @@ def frames_to_uint8(frames) -> np.ndarray:
 
 class LocalVideoModel(Predictor):
     """A diffusers image-to-video pipeline run locally. Subclasses set the class attributes and
-    implement ``load_pipeline`` (and, where the model needs them, ``configure`` and ``call_kwargs``)."""
+    implement ``load_pipeline`` (and, where the model needs them, ``configure`` and ``call_kwargs``);
+    ``options_type`` is a ``LocalOptions`` (``options(ctx)``)."""
 
+    options_type = LocalOptions
     model_id: str = ""
     default_revision: str | None = None
     pipeline_class: str = ""  # a class name in ``diffusers``
@@ -124,46 +119,39 @@ class LocalVideoModel(Predictor):
 
     def params(self, ctx: PredictContext) -> dict[str, Any]:
         """The generation parameters of this run: the defaults, overridden by options; validated."""
+        o = self.options(ctx)  # typed and range-checked (at least 1, fps positive)
         p = dict(self.defaults)
-        for key, kind in (("height", int), ("width", int), ("num_frames", int), ("steps", int),
-                          ("guidance_scale", float), ("fps", float)):
-            value = ctx.option(key)
+        for key in ("height", "width", "num_frames", "steps", "guidance_scale", "fps"):
+            value = getattr(o, key)
             if value is not None:
-                try:
-                    p[key] = kind(value)
-                except (TypeError, ValueError):
-                    raise UserError(f"{self.name}: option {key} must be a number, got {value!r}") from None
-        for key in ("height", "width", "num_frames", "steps"):
-            if p[key] < 1:
-                raise UserError(f"{self.name}: option {key} must be at least 1, got {p[key]}")
-        if p["fps"] <= 0:
-            raise UserError(f"{self.name}: option fps must be positive, got {p['fps']}")
+                p[key] = value
         if p["height"] % self.size_multiple or p["width"] % self.size_multiple:
             raise UserError(f"{self.name}: height and width must be multiples of {self.size_multiple}, got "
                             f"{p['width']}x{p['height']}")
         if (p["num_frames"] - 1) % 4:
             raise UserError(f"{self.name}: num_frames must be 4k + 1 (the VAE compresses 4 frames into one latent "
                             f"frame after the first), got {p['num_frames']}")
-        injected = ctx.option("pipeline")
-        if injected is not None:  # used as it is
-            p["dtype"] = self._pipeline_dtype(injected)
+        if o.pipeline is not None:  # used as it is
+            p["dtype"] = self._pipeline_dtype(o.pipeline)
             return p
-        p["dtype"] = str(ctx.option("dtype", p["dtype"]))
-        if p["dtype"] not in DTYPES:
-            raise UserError(f"{self.name}: option dtype must be one of {', '.join(DTYPES)}, got {p['dtype']!r}")
+        p["dtype"] = o.dtype or p["dtype"]  # one of DTYPES
         return p
 
     def source(self, ctx: PredictContext) -> dict[str, Any]:
         """Where the pipeline comes from: an injected object, a local directory or the hub."""
-        injected = ctx.option("pipeline")
+        o = self.options(ctx)
+        injected = o.pipeline
         if injected is not None:
             return {"source": "injected", "pipeline": f"{type(injected).__module__}.{type(injected).__name__}"}
-        path = ctx.option("model_path")
-        if path is not None:
-            return {"source": "local", "model": str(Path(path).expanduser().resolve())}
-        revision = ctx.option("revision", self.default_revision)
+        if o.model_path is not None:
+            return {"source": "local", "model": str(o.model_path.expanduser().resolve())}
+        revision = self.revision(ctx)
         return {"source": "hub", "model": self.model_id, "revision": revision or "main",
                 "commit": hub_commit(self.model_id, revision)}
+
+    def revision(self, ctx: PredictContext) -> str | None:
+        """The hub revision: the option ``revision``, else the model's."""
+        return self.options(ctx).revision or self.default_revision
 
     def extra_settings(self, ctx: PredictContext) -> dict[str, Any]:
         """Model-specific settings that change the output (checkpoint, guardrail)."""
@@ -172,7 +160,7 @@ class LocalVideoModel(Predictor):
     def settings(self, ctx: PredictContext) -> dict[str, Any]:
         src = self.source(ctx)
         where = {k: src[k] for k in ("source", "model", "revision", "pipeline") if k in src}
-        return {"seed": ctx.seed, **where, **self.params(ctx), "tiled_vae": option_flag(ctx, "tiled_vae"),
+        return {"seed": ctx.seed, **where, **self.params(ctx), "tiled_vae": self.options(ctx).tiled_vae,
                 **self.extra_settings(ctx)}
 
     def check_runnable(self, ctx: PredictContext) -> None:
@@ -180,13 +168,13 @@ class LocalVideoModel(Predictor):
 
     def generation_info(self, ctx: PredictContext) -> dict[str, Any]:
         self.check_runnable(ctx)
-        p = self.params(ctx)
+        p, o = self.params(ctx), self.options(ctx)
         info = {
             **self.source(ctx),
             "pipeline_class": f"diffusers.{self.pipeline_class}",
             "height": p["height"], "width": p["width"], "num_frames": p["num_frames"], "fps": p["fps"],
             "num_inference_steps": p["steps"], "guidance_scale": p["guidance_scale"],
-            "guidance_scale_source": "option" if ctx.option("guidance_scale") is not None else self.guidance_note,
+            "guidance_scale_source": "option" if o.guidance_scale is not None else self.guidance_note,
             "dtype": p["dtype"],
             "prompt": "task prompt + the paper's suffix (per example in 'examples')",
             "negative_prompt": NEGATIVE_PROMPT,
@@ -194,8 +182,7 @@ class LocalVideoModel(Predictor):
             "max_sequence_length": self.max_sequence_length,
             "generator": GENERATOR, "seed": ctx.seed, "seeds": SEED_RULE, "frames": FRAME_CONVERSION,
             "storage": STORAGE,
-            "device": self._resolve_device(ctx), "offload": option_flag(ctx, "offload"),
-            "tiled_vae": option_flag(ctx, "tiled_vae"),
+            "device": self._resolve_device(ctx), "offload": o.offload, "tiled_vae": o.tiled_vae,
         }
         if self.paper_values(p):
             info["differs_from_paper"] = self.paper_values(p)
@@ -232,12 +219,12 @@ class LocalVideoModel(Predictor):
 
     def from_pretrained(self, cls, ctx: PredictContext, dtype, **kwargs):
         """``cls.from_pretrained`` on ``model_path`` or the hub id; a missing model is WeightsUnavailable."""
-        path = ctx.option("model_path")
-        where = str(Path(path).expanduser()) if path is not None else self.model_id
+        path = self.options(ctx).model_path
+        where = str(path.expanduser()) if path is not None else self.model_id
         if path is not None and not Path(where).is_dir():
             raise WeightsUnavailable(f"{self.name}: model_path {where} is not a directory (expected a diffusers "
                                      f"pipeline directory, e.g. a download of {self.model_id})")
-        revision = None if path is not None else ctx.option("revision", self.default_revision)
+        revision = None if path is not None else self.revision(ctx)
         if revision is not None:
             kwargs["revision"] = revision
         try:
@@ -258,9 +245,9 @@ class LocalVideoModel(Predictor):
             self.check_runnable(ctx)
             import torch
 
-            p = self.params(ctx)
+            p, o = self.params(ctx), self.options(ctx)
             device = self._resolve_device(ctx)
-            injected = ctx.option("pipeline")
+            injected = o.pipeline
             if injected is None:
                 dtype = getattr(torch, p["dtype"])
                 if device == "cpu":
@@ -270,13 +257,13 @@ class LocalVideoModel(Predictor):
             else:
                 pipe = injected
             pipe = self.configure(pipe, ctx, injected is not None)
-            if option_flag(ctx, "offload") and device.startswith("cuda"):
+            if o.offload and device.startswith("cuda"):
                 pipe.enable_model_cpu_offload(device=device)
             else:
-                if option_flag(ctx, "offload"):
+                if o.offload:
                     log.warning("%s: offload asks for a GPU; running on %s without it", self.name, device)
                 pipe.to(device)
-            if option_flag(ctx, "tiled_vae"):
+            if o.tiled_vae:
                 pipe.vae.enable_tiling()
             if injected is not None:
                 pipe.set_progress_bar_config(disable=True)
@@ -285,8 +272,7 @@ class LocalVideoModel(Predictor):
             raise
         self._pipe, self._device = pipe, device
         src = self.source(ctx)
-        self._commit = hub_commit(self.model_id, ctx.option("revision", self.default_revision)) \
-            if src["source"] == "hub" else None
+        self._commit = hub_commit(self.model_id, self.revision(ctx)) if src["source"] == "hub" else None
         return pipe
 
     def call_kwargs(self, pipe, inputs, p: dict[str, Any]) -> dict[str, Any]:

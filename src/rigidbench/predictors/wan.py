@@ -8,7 +8,7 @@ bfloat16, the paper's negative prompt, the task prompt with the paper's suffix, 
 frame as ``image``. The paper does not state the guidance scale; we use the model's published
 default, 5.0 (``sample_guide_scale`` of the TI2V-5B configuration), and record it.
 
-Besides the options of ``local.LocalVideoModel`` (``offload``, ``tiled_vae``, overrides):
+Besides the options of ``local.LocalVideoModel`` (``offload``, ``tiled_vae``, overrides), ``options.WanOptions``:
 
 ``sampler``: ``flow-euler`` (default) or ``unipc``. The paper does not name its sampler; its runs (the
 authors' release, through DiffSynth-Studio) used DiffSynth's flow-matching Euler schedule for Wan (shift
@@ -52,6 +52,7 @@ from typing import Any
 from ..errors import RigidBenchError, UserError
 from .base import PredictContext
 from .local import LocalVideoModel, dtype_kwarg
+from .options import WanOptions
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,7 @@ SAMPLERS = {
                    "FlowMatchEulerDiscreteScheduler(shift=5.0) given that grid"),
     "unipc": "the pipeline's own scheduler (Wan2.2-TI2V-5B-Diffusers: UniPCMultistepScheduler, flow_shift 5.0)",
 }
-DEFAULT_SAMPLER = "flow-euler"
+DEFAULT_SAMPLER = "flow-euler"  # SAMPLERS and this are WanOptions.sampler's choices and default (tests check)
 RELEASE_SAMPLER = ("DiffSynth-Studio 2.0.18 WanVideoPipeline defaults: FlowMatchScheduler('Wan'), sigma_shift 5.0, "
                    "50 steps")
 HASH_LIMIT_BYTES = 2 * 2**30  # checkpoints up to this size are identified by their sha256, larger by size and mtime
@@ -110,7 +111,7 @@ def detect_checkpoint(path: str | Path) -> dict[str, Any]:
                                   "WanTransformer3DModel (config.json) or exactly one .safetensors file; found "
                                   f"{len(files)} .safetensors files")
         path = files[0]
-    from ..train.load import detect_file  # also the release's formats: .pt/.ckpt, DiffSynth key names
+    from .wan_checkpoints import detect_file  # also the release's formats: .pt/.ckpt, DiffSynth key names
 
     return detect_file(path)
 
@@ -178,8 +179,8 @@ def _check_adapter(transformer, expected: int, path) -> int:
 
 def load_lora(pipe, found: dict) -> dict[str, Any]:
     """Load a LoRA checkpoint into ``pipe.transformer`` as adapter "checkpoint"; returns facts for the record."""
-    if found.get("reader") == "rigidbench" or not hasattr(pipe, "lora_state_dict"):  # train/load.py merges it
-        from ..train.load import apply_file
+    if found.get("reader") == "rigidbench" or not hasattr(pipe, "lora_state_dict"):  # wan_checkpoints.py merges it
+        from .wan_checkpoints import apply_file
 
         return apply_file(pipe.transformer, found)
     try:
@@ -233,8 +234,8 @@ def load_full_transformer(pipe, found: dict):
     """Put a fine-tuned ``WanTransformer3DModel`` into ``pipe``: a saved directory replaces the
     transformer; a state dict is loaded strictly into the pipeline's transformer (same architecture,
     same dtype; every key must match)."""
-    if found.get("reader") == "rigidbench":  # the release's / DiffSynth's formats (train/load.py)
-        from ..train.load import apply_file
+    if found.get("reader") == "rigidbench":  # the release's / DiffSynth's formats (wan_checkpoints.py)
+        from .wan_checkpoints import apply_file
 
         return apply_file(pipe.transformer, found)["loader"]
     if found["kind"] == "transformer-dir":
@@ -262,6 +263,7 @@ def load_full_transformer(pipe, found: dict):
 
 
 class WanPredictor(LocalVideoModel):
+    options_type = WanOptions
     model_id = "Wan-AI/Wan2.2-TI2V-5B-Diffusers"
     default_revision = None
     pipeline_class = "WanImageToVideoPipeline"
@@ -276,15 +278,12 @@ class WanPredictor(LocalVideoModel):
         self._checkpoint_record: dict[str, Any] | None = None
 
     def checkpoint(self, ctx: PredictContext) -> dict[str, Any] | None:
-        path = ctx.option("checkpoint")
+        path = self.options(ctx).checkpoint
         return None if path is None else detect_checkpoint(path)
 
     def sampler(self, ctx: PredictContext) -> str:
-        """The ``sampler`` option: "flow-euler" (default, the release's) or "unipc"."""
-        name = str(ctx.option("sampler", DEFAULT_SAMPLER))
-        if name not in SAMPLERS:
-            raise UserError(f"{self.name}: option sampler must be one of {', '.join(SAMPLERS)}, got {name!r}")
-        return name
+        """The ``sampler`` option: "flow-euler" (default, the release's) or "unipc" (checked by WanOptions)."""
+        return self.options(ctx).sampler
 
     def extra_settings(self, ctx: PredictContext) -> dict[str, Any]:
         found = self.checkpoint(ctx)

@@ -272,7 +272,7 @@ def merge_lora(transformer, path: str | Path, scale: float = 1.0) -> dict[str, A
         weight.copy_((weight.float() + delta).to(weight.dtype))
     ranks = sorted({p["rank"] for p in lora.values()})
     scales = sorted({p["scale"] for p in lora.values()})
-    return {"loader": "LoRA merged into the weights (rigidbench.train.load)", "lora_layers": len(updates),
+    return {"loader": "LoRA merged into the weights (rigidbench.predictors.wan_checkpoints)", "lora_layers": len(updates),
             "rank": ranks[0] if len(ranks) == 1 else ranks, "scale": scales[0] if len(scales) == 1 else scales}
 
 
@@ -304,7 +304,7 @@ def load_full(transformer, path: str | Path) -> dict[str, Any]:
         raise CheckpointFileError(f"checkpoint {path} does not match the Wan transformer: {len(wrong)} shapes differ, "
                                   f"e.g. {k} {tuple(state[k].shape)} in the file, {tuple(own[k].shape)} in the model")
     transformer.load_state_dict(state, strict=True)
-    return {"loader": "strict load_state_dict (rigidbench.train.load)", "tensors": len(state)}
+    return {"loader": "strict load_state_dict (rigidbench.predictors.wan_checkpoints)", "tensors": len(state)}
 
 
 def apply_file(transformer, found: dict[str, Any]) -> dict[str, Any]:
