@@ -32,15 +32,15 @@ class NoopWorker:
 
 def render_rate(rows, reg, quality: str, executor_name: str, workers: int) -> dict:
     from rigidbench.executors import RayExecutor
-    from rigidbench.pipeline.render import render_rows, render_rows_with
+    from rigidbench.pipeline.render import render_rows
 
     with tempfile.TemporaryDirectory(prefix="rigidbench-scale-") as tmp:
         t0 = time.perf_counter()
         if executor_name == "local":
             done, failures = render_rows(rows, reg, Path(tmp), quality=quality, workers=workers, progress=False)
         else:
-            done, failures = render_rows_with(RayExecutor(workers=workers), rows, reg, Path(tmp), quality=quality,
-                                              progress=False)
+            done, failures = render_rows(rows, reg, Path(tmp), quality=quality, progress=False,
+                                         executor=RayExecutor(workers=workers))
         seconds = time.perf_counter() - t0
     return {"executor": executor_name, "workers": workers, "examples": len(done), "failed": len(failures),
             "seconds": round(seconds, 2), "examples_per_minute": round(60.0 * len(done) / seconds, 2)}

@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Iterator
 
 
-def _fsync(path: Path) -> None:
+def fsync_file(path: str | Path) -> None:
+    """Flush a file's data to disk (before a rename that must survive a crash)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -49,7 +50,7 @@ def atomic_file(path: str | Path, *, suffix: str = "", tmp: str | Path | None = 
     try:
         yield tmp
         if durable:
-            _fsync(tmp)
+            fsync_file(tmp)
         if mode is not None:
             os.chmod(tmp, mode)
         tmp.replace(path)

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping, Sequence
 
-from .atomic import _fsync
+from .atomic import fsync_file
 from .errors import EXAMPLE_ERRORS, UserError
 from .executors import Executor, LocalExecutor, Resources, Shard
 from .jsonio import write_json
@@ -152,7 +152,8 @@ class Stage(ABC):
         """Called once before the examples in ``todo`` run (e.g. a preflight check, a shared record)."""
 
     def finish(self, report: "StageReport") -> None:
-        """Called once after the run, also when it was interrupted (e.g. write the run-level results)."""
+        """Called once after the run, also when it was interrupted or stopped by a bug (``report.completed``
+        says which), e.g. to write the run-level results."""
 
 
 class StageWorker:
@@ -254,7 +255,7 @@ def commit(staging: Path, root: Path, outputs: Sequence[str]) -> None:
                 src.rename(dst)
         else:
             if src.is_file():
-                _fsync(src)
+                fsync_file(src)
             if dst.is_dir() and not dst.is_symlink():
                 shutil.rmtree(dst)
             src.replace(dst)
@@ -320,6 +321,7 @@ class StageReport:
     results: dict[str, dict] = field(default_factory=dict)
     interrupted: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    completed: bool = False  # every selected example was attempted (not stopped by an interrupt or a bug)
 
     @property
     def succeeded(self) -> list[str]:
@@ -380,6 +382,13 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
     return todo
 
 
+def _remove_if_empty(path: Path) -> None:
+    try:
+        path.rmdir()
+    except OSError:  # absent, or another run (a shard) is staging an example there
+        pass
+
+
 def run_stage(stage: Stage, selection: Selection = Selection(), executor: Executor | None = None,
               progress: bool = True, on_result: Callable[[str, dict], None] | None = None) -> StageReport:
     """Run ``stage`` on the selected examples (see the module docstring); returns the report. ``on_result(id,
@@ -403,6 +412,9 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
         log.warning("%s: %d %s(s) made with other inputs or settings are made again: %s", stage.name, len(changed),
                     stage.unit, ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else ""))
     executor = executor or LocalExecutor()
+    if todo:  # before any bar opens: a preflight error is then one clean line
+        stage_dir(stage.root, stage.name).mkdir(parents=True, exist_ok=True)
+        stage.prepare([t["id"] for t in todo])
     bar = tqdm(total=len(todo), unit=stage.unit, desc=stage.name, disable=not progress or not todo, position=0)
     sub: dict[str, Any] = {"bar": None, "done": {}}
 
@@ -423,7 +435,10 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
             report.results[item_id] = entry.get("result") or {}
         elif status == "failed":
             report.failed[item_id] = entry.get("error") or "failed"
-            bar.write(f"FAILED {item_id}: {report.failed[item_id]}")
+            if progress:
+                bar.write(f"FAILED {item_id}: {report.failed[item_id]}")
+            else:
+                log.warning("%s: example %s failed: %s", stage.name, item_id, report.failed[item_id])
         else:
             report.interrupted.append(item_id)
         bar.update(1)
@@ -433,12 +448,11 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
     job = {"stage": stage.name, "root": str(Path(stage.root).resolve()), "worker": stage.worker, "job": stage.job()}
     try:
         if todo:
-            stage_dir(stage.root, stage.name).mkdir(parents=True, exist_ok=True)
-            stage.prepare([t["id"] for t in todo])
             instance = stage.worker_instance() if isinstance(executor, LocalExecutor) else None
             runner = ItemRunner(job, instance) if isinstance(executor, LocalExecutor) else None
             executor.map(RUNNER, job, todo, stage.resources, on_result=collect, instance=runner,
                          on_progress=on_progress)
+        report.completed = True
     finally:
         bar.close()
         if sub["bar"] is not None:
@@ -447,6 +461,7 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
         report.interrupted += [t["id"] for t in todo if t["id"] not in finished and t["id"] not in report.interrupted]
         report.ran.sort(key=ids.index)
         report.seconds = time.time() - started
+        _remove_if_empty(stage_dir(stage.root, stage.name) / STAGING_DIR)
         stage.finish(report)
     return report
 

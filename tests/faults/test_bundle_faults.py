@@ -164,10 +164,13 @@ def test_render_redoes_a_bundle_rendered_at_another_preset_and_never_overwrites_
     rows = manifest.select(manifest.rows("eval", registry()), list(IDS), None)
     with pytest.raises(UserError, match="imported from the published set"):
         rows_to_render(rows, data, "preview")
+    with pytest.raises(UserError, match="imported from the published set"):
+        rows_to_render(rows, data, "test")  # not even at the preset they name
     ours = _as_our_renders(data, tmp_path / "ours", monkeypatch)
-    assert rows_to_render(rows, ours, "test") == [] and rows_to_render(rows, ours) == []
+    assert rows_to_render(rows, ours, "test") == []  # complete, made at `test` before ledgers: taken over
     assert [r.sample_id for r in rows_to_render(rows[:1], ours, "preview")] == [rows[0].sample_id]
-    assert not (ours / "eval" / rows[0].sample_id).exists() and (ours / "eval" / rows[1].sample_id).is_dir()
+    # a dry run: the bundle stays until its new render replaces it whole, and no ledger is written
+    assert (ours / "eval" / rows[0].sample_id).is_dir() and not (ours / "eval" / ".stages" / "render").exists()
 
 
 def test_render_renders_a_damaged_bundle_again_and_skips_intact_ones(copies, tmp_path, monkeypatch):
@@ -177,13 +180,13 @@ def test_render_renders_a_damaged_bundle_again_and_skips_intact_ones(copies, tmp
     data = _as_our_renders(copies[0], tmp_path / "ours", monkeypatch)
     rows = manifest.select(manifest.rows("eval", registry()), list(IDS), None)
     assert [r.sample_id for r in rows] == list(IDS)
-    assert rows_to_render(rows, data) == []  # every bundle intact: nothing to render
+    assert rows_to_render(rows, data, "test") == []  # every bundle intact: nothing to render
     damage(data / "eval" / DAMAGED / "tracks.npz")
     (data / "eval" / f".{IDS[2]}.tmp").mkdir()  # a killed render's leftover of another row: not rerun, kept
     assert not is_complete(data, rows[1]) and is_complete(data, rows[0])
-    todo = rows_to_render(rows, data)
+    todo = rows_to_render(rows, data, "test")
     assert [r.sample_id for r in todo] == [DAMAGED]
-    assert not (data / "eval" / DAMAGED).exists()  # removed, so the new render can be renamed into place
+    assert (data / "eval" / DAMAGED).is_dir()  # kept until the new render replaces it whole
     assert (data / "eval" / "00000").is_dir() and (data / "eval" / f".{IDS[2]}.tmp").is_dir()
 
 
@@ -206,7 +209,9 @@ def test_a_one_frame_clip_is_refused_and_scored_marked_with_allow_short(copies, 
 
     summary = evaluate(preds, data, run, progress=False, allow_short=True)
     results = results_of(run)
-    assert not summary.failed and summary.evaluated == [DAMAGED] and sorted(summary.reused) == ["00000", "00002"]
+    # --allow-short is one of the rules in every example's key: all are scored again under it
+    assert not summary.failed and summary.evaluated == list(IDS) and not summary.reused
+    assert summary.stage.redone == {i: "its inputs or settings changed" for i in IDS}
     record = json.loads((run / "examples" / f"{DAMAGED}.json").read_text())
     assert record["coverage"]["short"] is True and record["coverage"]["fraction"] == 0.0
     assert record["coverage"]["frames"] == 1 and record["frames_compared"] == 1
@@ -325,7 +330,7 @@ def test_rerendering_scratch_lives_in_the_output_folder_and_a_killed_runs_is_rem
     from rigidbench.predictors import counterfactuals as cf
     from rigidbench.predictors.base import SCRATCH_DIR, FailureMode, PredictContext
 
-    monkeypatch.setattr(cf, "_import_bpy_into", lambda folder: None)  # (bpy's own folder: checked by hand)
+    monkeypatch.setattr(cf, "import_bpy_into", lambda folder: None)  # (bpy's own folder: checked by hand)
     out = tmp_path / "predictions"
     dead = out / SCRATCH_DIR / f"{socket.gethostname()}-{2 ** 22 + 17}"  # above Linux's default pid_max
     (dead / "rigidbench-00001-abc" / "00001").mkdir(parents=True)

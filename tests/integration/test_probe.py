@@ -39,10 +39,10 @@ def test_probe_end_to_end_on_tiny(data_and_cache, tmp_path):
     assert [p["tau"] for p in man["schedule"]] == [0.1, 0.3, 0.5, 0.7, 0.9]
     sigmas = [p["sigma"] for p in man["schedule"]]
     assert sigmas == sorted(sigmas, reverse=True)  # tau 0.9 is the least noisy (the paper's and release's tau)
-    assert man["version"] == 2 and man["backbone_seed"] is None
+    assert man["version"] == 3 and man["backbone_seed"] is None
     rand = json.loads((acts["random"] / "manifest.json").read_text())
     assert rand["backbone_seed"] == 0 and "RMSNorm" in rand["random_init"]
-    assert len(man["chunks"]) == 2
+    assert sorted(man["clips"]) == ["00000", "00001", "00002", "00003"]  # one file pair per clip
     from rigidbench.probe.store import ActivationStore
 
     store = ActivationStore(acts["base"])
@@ -53,7 +53,7 @@ def test_probe_end_to_end_on_tiny(data_and_cache, tmp_path):
     # a rerun skips every clip
     assert main(["probe", "extract", "--backbone", "base", "--cache", str(cache), "--data", str(data),
                  "--out", str(acts["base"]), "--no-progress"]) == 0
-    assert json.loads((acts["base"] / "manifest.json").read_text())["chunks"] == man["chunks"]
+    assert json.loads((acts["base"] / "manifest.json").read_text())["clips"] == man["clips"]
 
     probes = {}
     for backbone in ("base", "random"):

@@ -316,7 +316,8 @@ def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows
 
     row = task_rows["ball_chain"]
     data = tmp_path / "data"
-    tmp_dir = data / row.split / f".{row.sample_id}.tmp"
+    # the render is staged by the stage driver; render_spec builds its temporary inside the example's staging
+    tmp_dir = data / row.split / ".stages" / "render" / "staging" / row.sample_id / f".{row.sample_id}.tmp"
     script = textwrap.dedent(f"""
         import sys
         from pathlib import Path
@@ -402,8 +403,8 @@ def test_fast_presets_approximate_light_transport_and_drop_bump_paper_keeps_both
     # The choice is the preset's `light_transport` and `denoise_quality` keys, not its name.
     import bpy
 
-    from rigidbench.assets import materials as M
     from rigidbench.blender import render as R
+    from rigidbench.blender.assets import materials as M
     from rigidbench.blender.session import reset_scene
 
     reg = load_registry()

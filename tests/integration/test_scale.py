@@ -13,7 +13,7 @@ from rigidbench.config import registry
 from rigidbench.evaluation import evaluate
 from rigidbench.executors import RayExecutor, Shard
 from rigidbench.pipeline.predict import predict
-from rigidbench.pipeline.render import render_rows_with
+from rigidbench.pipeline.render import render_rows
 from rigidbench.predictors import PREDICTORS, Kind, PredictContext, Predictor, PredictorInfo
 from rigidbench.predictors.image_space import reference
 
@@ -47,7 +47,7 @@ def _arrays(path: Path) -> dict:
 def test_ray_renders_the_same_bundles_as_a_local_run(cluster, local_data, tmp_path):
     reg = registry()
     rows = manifest.select(manifest.eval_rows(reg), list(IDS[:1]), None)
-    done, failures = render_rows_with(RayExecutor(workers=1), rows, reg, tmp_path, quality="test", progress=False)
+    done, failures = render_rows(rows, reg, tmp_path, quality="test", progress=False, executor=RayExecutor(workers=1))
     assert done == list(IDS[:1]) and not failures
     for sample_id in IDS[:1]:
         for name in ("masks.npz", "depth.npz", "trajectories.npz", "tracks.npz"):

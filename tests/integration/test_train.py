@@ -66,7 +66,8 @@ def test_preprocess_writes_a_resumable_float16_cache(cache, train_split, capsys)
     assert main(["preprocess", "--data", str(train_split.parent), "--out", str(cache), "--model", "tiny",
                  "--no-progress"]) == 0
     assert "0 clips and 0 prompts encoded" in capsys.readouterr().out
-    assert json.loads((cache / "manifest.json").read_text())["shards"] == manifest["shards"]
+    again = json.loads((cache / "manifest.json").read_text())
+    assert again["examples"] == manifest["examples"] and again["prompts"] == manifest["prompts"]
 
 
 def test_the_tiny_model_overfits_two_clips(cache, tmp_path, torch_single_thread):
@@ -234,13 +235,14 @@ def test_tiny_lora_and_full_checkpoints_load_through_the_wan_predictor(uninterru
 
 
 def test_sharded_preprocess_reads_as_the_single_cache(train_split, cache, tmp_path, torch_single_thread):
-    """Shards 0/2 and 1/2 (job arrays; Ray runs the same parts) write CACHE/part-I-of-2; read together they
+    """Shards 0/2 and 1/2 (job arrays) each encode their part of the clips into the one cache; together they
     hold exactly the examples, prompts and latents of one unsharded run."""
     out = tmp_path / "sharded"
     for shard in ("0/2", "1/2"):
         assert main(["preprocess", "--data", str(train_split), "--out", str(out), "--model", "tiny",
                      "--no-progress", "--shard", shard]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["part-0-of-2", "part-1-of-2"]
+    assert not list(out.glob("part-*")) and sorted(p.stem for p in (out / ".stages" / "preprocess").glob("0*.json")) \
+        == ["00000", "00001"]
     whole, parts = LatentCache(cache), LatentCache(out)
     assert parts.ids == whole.ids and len(parts) == TRAIN_IDS
     for example_id in whole.ids:

@@ -183,7 +183,7 @@ def test_one_damaged_sample_fails_alone_with_its_file_named(tmp_path, damage):
     assert not (tmp_path / "data" / "eval" / "00001").exists()
     # no temporaries: only the stage ledger (which records the failure) is hidden there
     assert [p.name for p in (tmp_path / "data" / "eval").glob(".*")] == [".stages"]
-    assert not any((tmp_path / "data" / "eval" / ".stages" / "import" / "staging").iterdir())
+    assert not (tmp_path / "data" / "eval" / ".stages" / "import" / "staging").exists()
     assert read_ledger(tmp_path / "data" / "eval", "import", "00001")["status"] == "failed"
 
 

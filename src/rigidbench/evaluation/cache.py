@@ -58,8 +58,10 @@ def reference_hash(sample_dir: Path) -> str:
 def input_key(prediction_key: str, reference_key: str, backend: str, nets_key: str, metrics: tuple[str, ...],
               rules: str = "") -> str:
     """Everything an example's scores depend on: prediction, reference, perception backend and version,
-    feature networks, the metric set, the evaluation rules (protocol and the checks that refuse an
-    example: a record scored under other rules is never reused) and the scoring version."""
+    feature networks, the metric set, the evaluation protocol (``rules``) and the scoring version. It is
+    stored in the example's record and names its perception cache; the evaluate stage's key
+    (``runner.EvaluateStage.key``) adds the rules that refuse an example (the first-frame check and
+    ``allow_short``), so a record scored under other rules is never reused."""
     text = f"{prediction_key}|{reference_key}|{backend}|{nets_key}|{','.join(metrics)}|{rules}|{SCORE_VERSION}"
     return hashlib.sha256(text.encode()).hexdigest()
 

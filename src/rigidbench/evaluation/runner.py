@@ -1,4 +1,11 @@
-"""The evaluate stage: every reference example's prediction perceived, aligned, scored and written."""
+"""The evaluate stage: every reference example's prediction perceived, aligned, scored and written.
+
+``EvaluateStage`` puts evaluation on the stage driver (``rigidbench.driver``): the driver selects the
+examples, keeps a ledger entry per example (``out/.stages/evaluate/<id>.json``) keyed by the example's
+inputs and rules, skips those whose key and committed record are unchanged, runs the rest through an
+executor and records failures; ``EvaluateWorker`` scores one example into a staging folder, and
+``EvaluateStage.finish`` writes results.json and run.json from every selected example's record.
+"""
 
 from __future__ import annotations
 
@@ -8,13 +15,13 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
-from ..atomic import atomic_file
-from ..errors import EXAMPLE_ERRORS, EvaluationError, UserError
-from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
+from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, run_stage
+from ..errors import EXAMPLE_ERRORS, EvaluationError
+from ..executors import Executor, LocalExecutor, Resources, Shard
 from ..firstframe import check_first_frame, mismatch_message
 from ..folders import RunFolder, find_prediction, state_path
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity
@@ -34,6 +41,11 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class EvaluationSummary:
+    """What ``evaluate`` did: ``evaluated`` (scored now, sorted), ``reused`` (unchanged records kept),
+    ``failed`` (id -> reason, in selection order), the skipped measurements, whether the run is official,
+    results.json's content, and the stage driver's report (``stage.redone``: why each earlier record was
+    not reused)."""
+
     out_dir: Path
     evaluated: list[str]
     reused: list[str]
@@ -41,6 +53,7 @@ class EvaluationSummary:
     skipped_metrics: dict[str, str]
     official: bool
     results: dict
+    stage: StageReport | None = None
 
 
 def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
@@ -54,9 +67,9 @@ def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
 
 
 def refusal(facts: dict, pred: Path, ref_dir: Path, first_frame_check: bool, allow_short: bool) -> str | None:
-    """Why an example is refused under these rules, from its record's facts (``first_frame``, ``coverage``), or
-    None: one rule for a fresh score and for a record reused from a run under other rules. A first frame that
-    is not the reference's (another set's inputs) is named before a short clip."""
+    """Why an example is refused under these rules, from its facts (``first_frame``, ``coverage``), or None.
+    A first frame that is not the reference's (another set's inputs) is named before a short clip. Used for
+    a fresh score, and for a record from before ledgers, which is adopted only when these rules accept it."""
     first = facts.get("first_frame") or {}
     if first_frame_check and first.get("matches") is False:
         try:
@@ -92,135 +105,196 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
              protocol: str | None = None, first_frame_check: bool = True,
              allow_short: bool = False) -> EvaluationSummary:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
-    holding one split); writes out/examples/<id>.json and .npz, out/results.json and out/run.json.
+    holding one split); writes out/examples/<id>.json, .npz and .readouts.json, out/results.json and
+    out/run.json.
 
     ``perception_options`` go to the backend's constructor (neural: depth_model, device, weights,
     allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
-    ``out/cache/<backend>/``. A rerun reuses examples whose inputs are unchanged. ``executor`` runs
-    the examples (default: in this process); ``shard`` scores only its part of the selection (its
-    results.json covers that part; a final run without ``shard`` reuses every example and aggregates).
-    ``protocol`` names the evaluation protocol (``evaluation.protocol``; default ``rigidbench-v1``, the
-    published evaluator's rules). ``first_frame_check`` (default on) fails an example whose prediction does
-    not start from its reference's first frame (generated from another set's inputs); turning it off is
-    recorded in results.json. A clip that does not cover the reference span (``video.aligned_length``, the
-    rule ``validate`` uses) fails its example, as the published evaluator refuses it; ``allow_short``
-    scores it on the frames it has instead, marked short in its record and results.json (not official).
-    Every record and results.json hold each example's coverage (seconds and fraction of the span scored)."""
+    ``out/cache/<backend>/``. A rerun reuses examples whose inputs and rules are unchanged (the stage
+    driver's ledger, ``out/.stages/evaluate/``; ``EvaluateStage.key``) and scores the others; a killed run
+    resumes. ``executor`` runs the examples (default: in this process); ``shard`` scores only its part of
+    the selection (its results.json covers that part; a final run without ``shard`` reuses every example
+    and aggregates). ``protocol`` names the evaluation protocol (``evaluation.protocol``; default
+    ``rigidbench-v1``, the published evaluator's rules). ``first_frame_check`` (default on) fails an
+    example whose prediction does not start from its reference's first frame (generated from another set's
+    inputs); turning it off is recorded in results.json. A clip that does not cover the reference span
+    (``video.aligned_length``, the rule ``validate`` uses) fails its example, as the published evaluator
+    refuses it; ``allow_short`` scores it on the frames it has instead, marked short in its record and
+    results.json (not official). Both rules are part of each example's key: changing one scores the
+    examples again. Every record and results.json hold each example's coverage (seconds and fraction of
+    the span scored)."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
     data_dir = resolve_split_dir(data_dir)
-    model = model or pred_dir.name
-    refs = bundle_dirs(data_dir)
-    all_ids = [p.name for p in refs]
-    if ids:
-        unknown = sorted(set(ids) - set(all_ids))
-        if unknown:
-            raise UserError(f"unknown example id(s) {', '.join(unknown)} in {data_dir}")
-        refs = [p for p in refs if p.name in set(ids)]
-    refs = shard.select(refs[:limit] if limit is not None else refs)
+    selection = Selection.of(ids, limit, shard)
+    selection.apply([p.name for p in bundle_dirs(data_dir)], str(data_dir))  # an unknown id: before any loading
     executor = executor or LocalExecutor()
-    metrics = tuple(METRICS)
     rules = get_protocol(protocol)
     backend = ready_backend(perception, perception_options)
-    local = isinstance(executor, LocalExecutor)
-    if local and nets is None:
+    if isinstance(executor, LocalExecutor) and nets is None:
         nets = load_feature_nets(device)
-    nets_key = nets.key if nets is not None else feature_nets_key()
-    run_folder = RunFolder(out_dir)
-    run_folder.examples_dir.mkdir(parents=True, exist_ok=True)
-    run_folder.cache_dir.mkdir(exist_ok=True)
-    started = time.time()
-    evaluated, reused, failed, records = [], [], {}, []
-    timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
-    pred_hashes, ref_hashes = {}, {}
-    todo = []
-    for ref_dir in refs:  # what needs scoring: the input keys are computed here, on the driver
-        sample_id = ref_dir.name
-        try:
-            pred = find_prediction(pred_dir, sample_id)
-            if pred is None:
-                raise EvaluationError(f"{sample_id}: no prediction {sample_id}.mp4 (or .webm/.mov/...) in {pred_dir}")
-            state = state_path(pred)
-            pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")  # both checked regular
-            ref_key = reference_hash(ref_dir)
-        except EXAMPLE_ERRORS as exc:
-            failed[sample_id] = str(exc)
-            log.warning("example %s failed: %s", sample_id, exc)
-            continue
-        pred_hashes[sample_id], ref_hashes[sample_id] = pred_key, ref_key
-        key = input_key(pred_key, ref_key, f"{backend.name}:{backend.version}", nets_key, metrics,
-                        f"protocol={rules.name}")
-        old = previous_record(run_folder.record(sample_id))
-        why = refusal(old, pred, ref_dir, first_frame_check, allow_short) if old.get("input_key") == key else None
-        if why is not None:  # scored earlier under looser rules: the same refusal as a fresh score
-            failed[sample_id] = why
-            log.warning("example %s failed: %s", sample_id, why)
-        elif old.get("input_key") == key:
-            records.append(old)
-            reused.append(sample_id)
-        else:
-            todo.append({"id": sample_id, "key": key})
-    job = {"pred_dir": str(pred_dir.resolve()), "data_dir": str(data_dir.resolve()), "out_dir": str(out_dir.resolve()),
-           "model": model, "perception": perception, "perception_options": perception_options or {}, "device": device,
-           "protocol": rules.name, "first_frame_check": first_frame_check, "allow_short": allow_short}
-    bar = tqdm(total=len(todo), unit="example", desc="evaluate", disable=not progress or not todo)
-
-    def collect(item: dict, result: dict) -> None:
-        if result.get("status") == "succeeded":
-            records.append(result["record"])
-            evaluated.append(item["id"])
-            for k, v in result.get("timings", {}).items():
-                timings[k] = timings.get(k, 0.0) + v
-        else:
-            failed[item["id"]] = result.get("error", "failed")
-            log.warning("example %s failed: %s", item["id"], failed[item["id"]])
-        bar.update(1)
-
-    worker = EvaluateWorker(job, backend=backend, nets=nets) if local else None
-    try:
-        executor.map(WORKER, job, todo, evaluation_resources(perception, device), on_result=collect, instance=worker)
-    finally:
-        bar.close()
-    records.sort(key=lambda r: r["id"])
-    evaluated.sort()
-    complete_ids = {r["id"] for r in records}
-    selected = [p.name for p in refs]
-    missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
-    coverage = coverage_summary(records)
-    official = (len(all_ids) == EVAL_SIZE and len(selected) == len(all_ids) and complete_ids == set(all_ids)
-                and not failed and not missing_metrics and not coverage["short"])
-    skipped = {m: _skip_reason(records, m, nets) for m in missing_metrics}
-    results = {"model": model, "perception": backend.name,
-               "protocol": {**rules.facts(), "first_frame_check": first_frame_check, "allow_short": allow_short},
-               "dataset": set_identity(refs), "official": official, "metrics": list(metrics),
-               "n_examples": len(records), "n_reference": len(all_ids), "failed": failed,
-               "skipped_metrics": skipped, "coverage": coverage, **aggregate(records, metrics),
-               "readouts": aggregate_readouts(records, out_dir)}
-    if shard.count > 1:
-        results["shard"] = str(shard)
-    if not official:
-        results["why_not_official"] = why_not_official(all_ids, complete_ids, failed, missing_metrics,
-                                                       coverage["short"])
-    write_json(run_folder.results, results)
-    feature_nets = nets if nets is not None else FeatureNets(skipped={m: skipped[m] for m in skipped})
-    info = run_info(model, pred_dir, data_dir, backend, feature_nets, metrics, pred_hashes, ref_hashes, timings,
-                    time.time() - started, evaluated, reused, failed)
-    write_json(run_folder.run, {**info, "protocol": rules.facts(), "dataset": results["dataset"]})
-    return EvaluationSummary(out_dir, evaluated, reused, failed, skipped, official, results)
+    stage = EvaluateStage(pred_dir, data_dir, out_dir, model=model or pred_dir.name, backend=backend, nets=nets,
+                          rules=rules, perception=perception, perception_options=perception_options or {},
+                          device=device, first_frame_check=first_frame_check, allow_short=allow_short,
+                          shard=selection.shard)
+    report = run_stage(stage, selection, executor, progress)
+    return stage.summary(report)
 
 
-def previous_record(path: Path) -> dict:
-    """The score record an earlier run left at ``path``, or {} when there is none or it is damaged (a
-    truncated or foreign file is not an error: the example is simply scored again and the file replaced)."""
-    if not path.exists():
-        return {}
+def evaluation_resources(perception: str, device: str | None) -> Resources:
+    """One GPU per worker for neural perception (unless the device is the CPU); one CPU otherwise."""
+    return Resources(num_cpus=1, num_gpus=1 if perception == "neural" and device != "cpu" else 0)
+
+
+def read_record(path: Path) -> dict | None:
+    """The score record at ``path``, or None when there is none or it is damaged (a truncated or foreign file
+    is not an error: the example is simply scored again and the file replaced)."""
     try:
         doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
     except (OSError, ValueError) as exc:
         log.warning("%s: cannot be read (%s); scoring this example again", path, exc)
-        return {}
-    return doc if isinstance(doc, dict) else {}
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+class EvaluateStage(Stage):
+    """The evaluate stage as the driver sees it. Root: the run folder; items: the reference examples of the
+    split, payload ``{}`` (``key`` adds the example's ``input_key``, which the worker needs); key: the
+    example's input key (prediction video and world state, reference bundle, perception backend and version,
+    feature networks, metric list, protocol, score version; ``cache.input_key``, also stored in its record)
+    together with the rules ``first_frame_check`` and ``allow_short``; its output: ``examples/<id>.npz``,
+    ``<id>.readouts.json`` and ``<id>.json`` (the record, committed last)."""
+
+    name = "evaluate"
+    worker = "rigidbench.evaluation.runner:EvaluateWorker"
+
+    def __init__(self, pred_dir: Path, data_dir: Path, out_dir: Path, *, model: str, backend, nets: FeatureNets | None,
+                 rules: Protocol, perception: str, perception_options: dict, device: str | None,
+                 first_frame_check: bool, allow_short: bool, shard: Shard = Shard()):
+        self.pred_dir, self.data_dir, self.folder = Path(pred_dir), Path(data_dir), RunFolder(out_dir)
+        self.model, self.backend, self.nets, self.rules = model, backend, nets, rules
+        self.perception, self.perception_options, self.device = perception, perception_options, device
+        self.first_frame_check, self.allow_short, self.shard = first_frame_check, allow_short, shard
+        self.resources = evaluation_resources(perception, device)
+        self.metrics = tuple(METRICS)
+        self.nets_key = nets.key if nets is not None else feature_nets_key()
+        self.all_ids = [p.name for p in bundle_dirs(self.data_dir)]
+        # filled by key(): the content hashes (run.json), the input key (the record's) and the prediction file
+        self.pred_hashes: dict[str, str] = {}
+        self.ref_hashes: dict[str, str] = {}
+        self.input_keys: dict[str, str] = {}
+        self.predictions: dict[str, Path] = {}
+        self.results: dict | None = None
+        self.skipped: dict[str, str] = {}
+        self.started = time.time()
+
+    @property
+    def root(self) -> Path:
+        return self.folder.path
+
+    @property
+    def where(self) -> str:
+        return str(self.data_dir)
+
+    def items(self) -> dict[str, Any]:
+        return {sample_id: {} for sample_id in self.all_ids}
+
+    def key(self, item_id: str, payload: dict) -> str:
+        pred = find_prediction(self.pred_dir, item_id)
+        if pred is None:
+            raise EvaluationError(f"{item_id}: no prediction {item_id}.mp4 (or .webm/.mov/...) in {self.pred_dir}")
+        state = state_path(pred)
+        pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")  # both checked regular
+        ref_key = reference_hash(self.data_dir / item_id)
+        key = input_key(pred_key, ref_key, f"{self.backend.name}:{self.backend.version}", self.nets_key,
+                        self.metrics, f"protocol={self.rules.name}")
+        self.pred_hashes[item_id], self.ref_hashes[item_id] = pred_key, ref_key
+        self.input_keys[item_id], self.predictions[item_id] = key, pred
+        payload["input_key"] = key
+        return digest(key, {"first_frame_check": self.first_frame_check, "allow_short": self.allow_short})
+
+    def intact(self, item_id: str) -> bool:
+        """The record is readable and was scored from these inputs (its ``input_key``)."""
+        record = read_record(self.folder.record(item_id))
+        return record is not None and record.get("input_key") == self.input_keys.get(item_id)
+
+    def adopt(self, item_id: str, payload: dict, key: str) -> dict | None:
+        """A record from before ledgers scored from these inputs, and accepted by these rules (it may have
+        been scored under others: its facts say whether it would be refused now)."""
+        record = read_record(self.folder.record(item_id))
+        if record is None or record.get("input_key") != payload["input_key"]:
+            return None
+        if refusal(record, self.predictions[item_id], self.data_dir / item_id, self.first_frame_check,
+                   self.allow_short) is not None:
+            return None
+        return {"record": record, "timings": {}}
+
+    def job(self) -> dict:
+        return {"pred_dir": str(self.pred_dir.resolve()), "data_dir": str(self.data_dir.resolve()),
+                "out_dir": str(self.root.resolve()), "model": self.model, "perception": self.perception,
+                "perception_options": self.perception_options, "device": self.device, "protocol": self.rules.name,
+                "first_frame_check": self.first_frame_check, "allow_short": self.allow_short}
+
+    def worker_instance(self) -> "EvaluateWorker | None":
+        """In this process: a worker around the backend and feature networks already loaded."""
+        return EvaluateWorker(self.job(), backend=self.backend, nets=self.nets) if self.nets is not None else None
+
+    def prepare(self, todo: list[str]) -> None:
+        self.folder.cache_dir.mkdir(parents=True, exist_ok=True)
+
+    def finish(self, report: StageReport) -> None:
+        """results.json and run.json from the records of every selected example scored now or earlier; nothing
+        when the run did not complete (an interrupt or a bug: the rerun writes them)."""
+        if not report.completed:
+            return
+        self.folder.examples_dir.mkdir(parents=True, exist_ok=True)
+        self.folder.cache_dir.mkdir(exist_ok=True)
+        records = []
+        for sample_id in report.succeeded:
+            record = read_record(self.folder.record(sample_id))
+            records.append(record if record is not None else report.results[sample_id]["record"])
+        records.sort(key=lambda r: r["id"])
+        failed = {i: report.failed[i] for i in report.selected if i in report.failed}
+        complete_ids = {r["id"] for r in records}
+        missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
+        coverage = coverage_summary(records)
+        official = (len(self.all_ids) == EVAL_SIZE and len(report.selected) == len(self.all_ids)
+                    and complete_ids == set(self.all_ids) and not failed and not missing_metrics
+                    and not coverage["short"])
+        self.skipped = {m: _skip_reason(records, m, self.nets) for m in missing_metrics}
+        refs = [self.data_dir / i for i in report.selected]
+        results = {"model": self.model, "perception": self.backend.name,
+                   "protocol": {**self.rules.facts(), "first_frame_check": self.first_frame_check,
+                                "allow_short": self.allow_short},
+                   "dataset": set_identity(refs), "official": official, "metrics": list(self.metrics),
+                   "n_examples": len(records), "n_reference": len(self.all_ids), "failed": failed,
+                   "skipped_metrics": self.skipped, "coverage": coverage, **aggregate(records, self.metrics),
+                   "readouts": aggregate_readouts(records, self.root)}
+        if self.shard.count > 1:
+            results["shard"] = str(self.shard)
+        if not official:
+            results["why_not_official"] = why_not_official(self.all_ids, complete_ids, failed, missing_metrics,
+                                                           coverage["short"])
+        write_json(self.folder.results, results)
+        timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
+        for sample_id in report.ran:
+            for k, v in report.results[sample_id].get("timings", {}).items():
+                timings[k] = timings.get(k, 0.0) + v
+        feature_nets = self.nets if self.nets is not None else FeatureNets(skipped=dict(self.skipped))
+        info = run_info(self.model, self.pred_dir, self.data_dir, self.backend, feature_nets, self.metrics,
+                        self.pred_hashes, self.ref_hashes, timings, time.time() - self.started, sorted(report.ran),
+                        list(report.reused), failed)
+        write_json(self.folder.run, {**info, "protocol": self.rules.facts(), "dataset": results["dataset"]})
+        self.results = results
+
+    def summary(self, report: StageReport) -> EvaluationSummary:
+        """The run as ``evaluate`` returns it (after ``finish``)."""
+        failed = {i: report.failed[i] for i in report.selected if i in report.failed}
+        return EvaluationSummary(self.root, sorted(report.ran), list(report.reused), failed, self.skipped,
+                                 bool(self.results["official"]), self.results, report)
 
 
 def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> str:
@@ -229,42 +303,38 @@ def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> 
     return next((r["skipped"][metric] for r in records if metric in r.get("skipped", {})), "not computed")
 
 
-def evaluation_resources(perception: str, device: str | None) -> Resources:
-    """One GPU per worker for neural perception (unless the device is the CPU); one CPU otherwise."""
-    return Resources(num_cpus=1, num_gpus=1 if perception == "neural" and device != "cpu" else 0)
+class EvaluateWorker(StageWorker):
+    """Scores one example per call into the staging folder; keeps its perception backend and feature
+    networks loaded between calls (built from the job on a Ray actor or a child process, handed over
+    ready in this process). The payload must hold the example's ``input_key`` (``EvaluateStage.key``)."""
 
-
-WORKER = "rigidbench.evaluation.runner:EvaluateWorker"
-
-
-class EvaluateWorker:
-    """Scores one example per call, ``{"id", "key"}`` -> a record (``status`` succeeded or failed); keeps
-    its perception backend and feature networks loaded between calls (a Ray actor holds one)."""
+    STEPS = 3  # decode, perceive, measure
 
     def __init__(self, job: dict, backend=None, nets: FeatureNets | None = None):
+        super().__init__(job)
         self.pred_dir, self.data_dir, self.out_dir = (Path(job[k]) for k in ("pred_dir", "data_dir", "out_dir"))
         self.model = job["model"]
+        self.cache_dir = RunFolder(self.out_dir).cache_dir
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
         self.backend = backend or ready_backend(job["perception"], job.get("perception_options"))
         if hasattr(self.backend, "use_cache_dir"):
-            self.backend.use_cache_dir(RunFolder(self.out_dir).cache_dir / self.backend.name)
+            self.backend.use_cache_dir(self.cache_dir / self.backend.name)
         self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
         self.protocol = get_protocol(job.get("protocol"))
         self.first_frame_check = bool(job.get("first_frame_check", True))
         self.allow_short = bool(job.get("allow_short", False))
 
-    def __call__(self, item: dict) -> dict:
+    def run(self, item_id: str, payload: dict, staging: Path, progress: Progress) -> ItemResult:
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
-        sample_id = item["id"]
-        try:
-            pred = find_prediction(self.pred_dir, sample_id)
-            if pred is None:
-                raise EvaluationError(f"{sample_id}: its prediction disappeared from {self.pred_dir}")
-            record = _score_one(Sample(self.data_dir / sample_id), pred, self.backend, self.nets, self.model,
-                                item["key"], self.out_dir, timings, self.protocol, self.first_frame_check,
-                                self.allow_short)
-        except EXAMPLE_ERRORS as exc:
-            return failure_record(exc)
-        return {"status": "succeeded", "record": record, "timings": timings}
+        pred = find_prediction(self.pred_dir, item_id)
+        if pred is None:
+            raise EvaluationError(f"{item_id}: its prediction disappeared from {self.pred_dir}")
+        record = _score_one(Sample(self.data_dir / item_id), pred, self.backend, self.nets, self.model,
+                            payload["input_key"], staging, self.cache_dir, timings, self.protocol,
+                            self.first_frame_check, self.allow_short, progress)
+        out = RunFolder(Path())  # the paths under the run folder, as written under staging
+        outputs = [out.arrays(item_id), out.readouts(item_id), out.record(item_id)]  # the record last: done
+        return ItemResult(outputs=[p.as_posix() for p in outputs], result={"record": record, "timings": timings})
 
 
 def clip_coverage(clip_times_s: np.ndarray, ref_times_s: np.ndarray, fps: float) -> dict:
@@ -280,12 +350,15 @@ def clip_coverage(clip_times_s: np.ndarray, ref_times_s: np.ndarray, fps: float)
             "short": bool(n < len(ref_times_s))}
 
 
-def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, out_dir: Path,
-               timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True,
-               allow_short: bool = False) -> dict:
-    """Decode, check coverage, perceive (cached by input key), align and score one example; writes its .npz
-    and .json. A clip short of the reference span is refused (EvaluationError) unless ``allow_short``."""
+def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, staging: Path,
+               cache_dir: Path, timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True,
+               allow_short: bool = False, progress: Progress = lambda done, total: None) -> dict:
+    """Decode, check coverage, perceive (cached under ``cache_dir`` by input key ``key``), align and score one
+    example; writes its .npz, .readouts.json and .json under ``staging/examples/`` (a run folder's layout)
+    and returns the record. A clip short of the reference span is refused (EvaluationError) unless
+    ``allow_short``."""
     sample_id = sample.sample_id
+    steps = EvaluateWorker.STEPS
     t0 = time.time()
     ref_times = reference_times(sample.n_frames, sample.fps)
     # Decode only up to the last reference time unless the backend needs every generated frame (neural:
@@ -302,19 +375,20 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
         raise EvaluationError(why)
     video.frames = protocol.prepare(video.frames)
     timings["decode_s"] += time.time() - t0
+    progress(1, steps)
     t0 = time.time()
-    run_folder = RunFolder(out_dir)
-    cache = run_folder.cache_dir / f"{sample_id}-{backend.name}-{key[:16]}.npz"
+    cache = cache_dir / f"{sample_id}-{backend.name}-{key[:16]}.npz"
     if not getattr(backend, "cache", True):  # cheaper to recompute than to store (gt)
         perceived = backend.perceive(sample, video, pred)
     elif cache.exists():
         perceived = Perception.load(cache)
     else:
         perceived = backend.perceive(sample, video, pred)
-        for old_cache in run_folder.cache_dir.glob(f"{sample_id}-{backend.name}-*.npz"):
+        for old_cache in cache_dir.glob(f"{sample_id}-{backend.name}-*.npz"):
             old_cache.unlink()
         perceived.save(cache)
     timings["perception_s"] += time.time() - t0
+    progress(2, steps)
     aligned = perceived.aligned(ref_times)
     gen_rgb = align_video(video, ref_times)
     t0 = time.time()
@@ -327,10 +401,12 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
               "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
               "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}
-    record["readouts"] = example_readouts(sample, inputs, scores, out_dir)
+    out = RunFolder(staging)
+    out.examples_dir.mkdir(parents=True, exist_ok=True)
+    record["readouts"] = example_readouts(sample, inputs, scores, staging)
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
-    with atomic_file(run_folder.arrays(sample_id), suffix=".npz") as tmp:
-        np.savez_compressed(tmp, **arrays)
-    write_json(run_folder.record(sample_id), record)
+    np.savez_compressed(out.arrays(sample_id), **arrays)
+    write_json(out.record(sample_id), record)
+    progress(3, steps)
     return record

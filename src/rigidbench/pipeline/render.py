@@ -1,43 +1,64 @@
-"""The render stage: manifest rows -> sample bundles in DATA/<split>/<id>/.
+"""The render stage: manifest rows -> sample bundles in DATA/<split>/<id>/, run by the stage driver.
 
-Each example runs in its own child Python process (bpy is imported only there; its job description
-carries the run context's configuration directories), so a crash inside Blender loses only that example;
-``--workers N`` runs N at once. A bundle is built in ``DATA/<split>/.<id>.tmp`` and renamed into place when complete and validated, so a
-rerun skips finished examples and restarts interrupted ones from scratch. Failures are reported
-with the example id and the reason; the other examples continue.
+``RenderStage`` declares the stage to ``driver.run_stage``, which owns the rest: which examples are
+selected, which are already done, staging and the atomic commit, failures, progress and the report.
+An example's *key* is a digest of what its pixels and files are made from: the scene spec built from its
+manifest row, the configuration the renderer reads besides the spec (the objects' and ramp materials'
+entries, the scene's, the camera search settings), every setting of the render preset that changes the
+output, and ``RENDER_FORMAT``; not the device, the worker count or the threads. So a rerun skips the
+examples rendered with the same key (their bundle still passing ``check_bundle``), renders again exactly
+those whose key changed (another ``--quality``, an edited object in a config directory) and says why, and
+resumes a killed run from the examples it had not committed. A bundle rendered before the driver kept a
+ledger is taken over when it is complete and its metadata names the preset asked for.
+
+Locally each example renders in its own child Python process (``executors.ProcessExecutor``: bpy is
+imported only there, and a crash inside Blender loses only that example); ``--workers N`` runs N at
+once; ``--executor ray`` runs them on Ray actors. A worker renders into the driver's staging folder, and
+the finished bundle is renamed into DATA/<split>/<id>/ whole. Bundles imported from the published set
+are never rendered over.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
 import shutil
-import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
-
+from typing import Any, Callable, Mapping, Sequence
 
 from .. import manifest
 from ..blender.render import render_spec
 from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, registry as load_registry
+from ..argtypes import selected_ids, split_ids
 from ..context import RunContext
-from ..errors import EXAMPLE_ERRORS, UserError
-from ..executors import Executor, Resources, Shard, make_executor
+from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, plan, run_stage
+from ..errors import EXAMPLE_ERRORS, SpecError, UserError
+from ..executors import Executor, ProcessExecutor, RayExecutor, Resources
 from ..groundtruth import bundle as B
 from ..groundtruth.contact_sheet import write_contact_sheet
 from ..manifest import ManifestRow
 from ..spec.build import build_scene_spec
+from ..spec.types import SceneSpec
 
 log = logging.getLogger(__name__)
 
 DEFAULT_DATA = Path("data")
 QUALITIES = ("paper", "preview", "test")
-POLL_S = 0.2
+RENDER_WORKER = "rigidbench.pipeline.render:RenderWorker"
+#: Bump when the renderer writes other files or pixels for the same spec, configuration and preset: every
+#: bundle rendered before is then rendered again (its key changes).
+RENDER_FORMAT = 1
+#: Preset fields that do not change what is rendered (how Blender keeps its data between frames).
+UNKEYED_PRESET_FIELDS = ("persistent_data",)
+#: Configuration fields that do not change what is rendered or simulated (where the entry was read from).
+UNKEYED_CONFIG_FIELDS = ("source", "description")
+SETTINGS_CHANGED = "its inputs or settings changed"  # driver.plan's reason for a changed key
 
 
 @dataclass(frozen=True)
@@ -58,31 +79,6 @@ def is_complete(data_dir: Path, row: ManifestRow) -> bool:
     return path.is_dir() and not B.check_bundle(path, deep=False)
 
 
-def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str | None = None) -> list[ManifestRow]:
-    """The rows without a complete bundle rendered at ``preset`` (any preset when None). A damaged bundle (one
-    that fails ``check_bundle``) or one rendered at another preset is removed with a warning saying why, so
-    that it is rendered again in its place; stale temporaries of every row to render (``.<id>.tmp``, a killed
-    render's) are removed too. Bundles imported from the published set are never rendered over: UserError."""
-    todo = []
-    for row in rows:
-        path = bundle_dir(data_dir, row)
-        if path.is_dir():
-            if B.is_imported(path):
-                raise UserError(f"{path.parent} holds bundles imported from the published set (e.g. {path.name}); "
-                                "`render` does not overwrite them: render into another --data")
-            problems = B.check_bundle(path, deep=False)
-            rendered_at = _metadata(path).get("preset")
-            if not problems and (preset is None or rendered_at == preset):
-                continue
-            why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
-                   f"was rendered at the '{rendered_at}' preset, not '{preset}'")
-            log.warning("example %s: the bundle in %s %s; rendering it again", row.sample_id, path, why)
-            shutil.rmtree(path)
-        shutil.rmtree(path.with_name(f".{path.name}.tmp"), ignore_errors=True)  # a killed render's leftovers
-        todo.append(row)
-    return todo
-
-
 def _metadata(path: Path) -> dict:
     """A bundle's metadata.json, or {} when it cannot be read (check_bundle then reports it as damaged)."""
     try:
@@ -92,13 +88,222 @@ def _metadata(path: Path) -> dict:
     return meta if isinstance(meta, dict) else {}
 
 
+# -- the key -----------------------------------------------------------------------------------------------
+
+
+def plain(value: Any, skip: Sequence[str] = UNKEYED_CONFIG_FIELDS) -> Any:
+    """A configuration value as JSON types (dataclasses as dicts without the ``skip`` fields), for a key."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: plain(getattr(value, f.name), skip) for f in dataclasses.fields(value) if f.name not in skip}
+    if isinstance(value, Mapping):
+        return {str(k): plain(v, skip) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v, skip) for v in value]
+    return value
+
+
+def preset_settings(preset: RenderPreset) -> dict:
+    """Every setting of ``preset`` that changes the rendered bundle (its name too: the metadata records it)."""
+    return plain(preset, UNKEYED_PRESET_FIELDS)
+
+
+def looks(spec: SceneSpec, registry: Registry) -> dict:
+    """The configuration the renderer reads besides the spec: the entries of the spec's objects and ramp
+    materials, its scene (room, style, support) and the camera search settings (the spec has no camera yet)."""
+    assets = sorted({b.asset for b in spec.bodies if b.ramp is None})
+    materials = sorted({b.ramp.material for b in spec.bodies if b.ramp is not None})
+    return {"objects": {a: plain(registry.object(a)) for a in assets},
+            "materials": {m: plain(registry.material(m)) for m in materials},
+            "scene": plain(registry.scene(spec.scene)), "camera": plain(registry.camera)}
+
+
+def render_key(spec: SceneSpec, registry: Registry, preset: RenderPreset) -> str:
+    """The render stage's key of one example (see the module docstring)."""
+    return digest("render", RENDER_FORMAT, B.BUNDLE_VERSION, spec.to_dict(), looks(spec, registry),
+                  preset_settings(preset))
+
+
+# -- the stage -------------------------------------------------------------------------------------------
+
+
+class RenderWorker(StageWorker):
+    """Renders one manifest row into ``staging/<id>/`` (a child process, a Ray actor or this process),
+    forwarding frame progress. Blender's own errors (RuntimeError) and a missing bpy (ImportError) fail the
+    example like a bad spec does; the message starts with the error's type."""
+
+    def __init__(self, job: dict, registry: Registry | None = None):
+        super().__init__(job)
+        self.registry = registry if registry is not None else load_registry(job["config_dirs"])
+        self.preset = self.registry.preset(job["preset"])
+
+    def run(self, item_id: str, payload: Any, staging: Path, progress: Progress) -> ItemResult:
+        row = ManifestRow.from_dict(payload)
+        try:
+            spec = build_scene_spec(row, self.registry)
+            path = render_spec(spec, self.registry, self.preset, staging / item_id, device=self.job["device"],
+                               threads=self.job["threads"], on_frame=progress)
+        except (*EXAMPLE_ERRORS, RuntimeError, ImportError) as exc:  # RuntimeError: Blender's own errors
+            return ItemResult(status="failed", error=f"{type(exc).__name__}: {exc}")
+        meta = _metadata(path)
+        return ItemResult(outputs=[item_id], result={
+            "preset": meta.get("preset"), "frames": meta.get("frames"),
+            "device": (meta.get("render") or {}).get("device_kind"),
+            "seconds": (meta.get("render_seconds") or {}).get("total")})
+
+
+class RenderStage(Stage):
+    """Render ``rows`` (one split's manifest rows, the candidates) into ``data_dir/<split>/`` at ``quality``.
+    ``registry`` must be the one ``config_dirs`` produce (workers elsewhere rebuild it from the directories)."""
+
+    name = "render"
+    worker = RENDER_WORKER
+
+    def __init__(self, data_dir: str | Path, split: str, rows: Sequence[ManifestRow], registry: Registry,
+                 quality: str = "paper", device: str = "auto", threads: int | None = None,
+                 config_dirs: Sequence[str | Path] = ()):
+        self.data_dir, self.split, self.registry, self.quality = Path(data_dir), split, registry, quality
+        self.preset = registry.preset(quality)  # an unknown preset fails here, not on every worker
+        self.rows = {r.sample_id: r for r in rows}
+        strays = sorted({r.split for r in rows} - {split})
+        if strays:
+            raise ValueError(f"render stage of split {split} was given rows of split(s) {', '.join(strays)}")
+        self.device, self.threads, self.config_dirs = device, threads, [str(d) for d in config_dirs]
+        self.resources = Resources(num_cpus=threads or 1)
+        self.rerendered: dict[str, str] = {}  # id -> why a bundle made before ledgers existed is not kept
+
+    @property
+    def root(self) -> Path:
+        return self.data_dir / self.split
+
+    @property
+    def where(self) -> str:
+        return f"the {self.split} manifest"
+
+    def items(self) -> dict[str, dict]:
+        return {sample_id: row.to_dict() for sample_id, row in self.rows.items()}
+
+    def key(self, item_id: str, payload: Any) -> str:
+        try:
+            spec = build_scene_spec(self.rows[item_id], self.registry)
+        except SpecError as exc:  # the example fails; its reason reads like a worker's ("SpecError: ...")
+            raise SpecError(f"{type(exc).__name__}: {exc}") from exc
+        return render_key(spec, self.registry, self.preset)
+
+    def job(self) -> dict:
+        return {"config_dirs": self.config_dirs, "preset": self.quality, "device": self.device,
+                "threads": self.threads}
+
+    def worker_instance(self) -> RenderWorker:
+        return RenderWorker(self.job(), self.registry)
+
+    def intact(self, item_id: str) -> bool:
+        path = self.root / item_id
+        return path.is_dir() and not B.check_bundle(path, deep=False)
+
+    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+        """A bundle rendered before ledgers existed counts when complete and rendered at this preset (the old
+        rule); otherwise it is rendered again, with a warning saying why."""
+        path = self.root / item_id
+        if not path.is_dir():
+            return None
+        problems = B.check_bundle(path, deep=False)
+        rendered_at = _metadata(path).get("preset")
+        if not problems and rendered_at == self.quality:
+            return {"preset": rendered_at}
+        why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
+               f"was rendered at the '{rendered_at}' preset, not '{self.quality}'")
+        log.warning("example %s: the bundle in %s %s; rendering it again", item_id, path, why)
+        self.rerendered[item_id] = f"the bundle {why}"
+        return None
+
+    def refuse_imported(self, ids: Sequence[str]) -> None:
+        """UserError when a bundle of ``ids`` was imported from the published set (never rendered over)."""
+        for sample_id in ids:
+            path = self.root / sample_id
+            if path.is_dir() and B.is_imported(path):
+                raise UserError(f"{self.root} holds bundles imported from the published set (e.g. {sample_id}); "
+                                "`render` does not overwrite them: render into another --data")
+
+    def prepare(self, todo: list[str]) -> None:
+        for sample_id in todo:  # a killed render's leftovers from before the driver (renders now use staging)
+            leftover = self.root / f".{sample_id}.tmp"
+            if leftover.is_dir():
+                shutil.rmtree(leftover, ignore_errors=True)
+
+    def finish(self, report: StageReport) -> None:
+        for sample_id, why in self.rerendered.items():
+            if sample_id in report.selected:
+                report.redone.setdefault(sample_id, why)
+
+
+def render_threads(workers: int) -> int | None:
+    """Blender's threads per example: the CPUs shared among ``workers`` at once (None: all, one worker)."""
+    if workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {workers}")
+    return max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None
+
+
+def render_stage(stage: RenderStage, selection: Selection = Selection(), executor: Executor | None = None,
+                 workers: int = 1, quiet: bool = True, progress: bool = True) -> StageReport:
+    """Run ``stage`` on the selected rows; returns the driver's report. ``executor`` None: each example in a
+    child process, ``workers`` at once (``quiet`` hides Blender's console output)."""
+    items = stage.items()
+    stage.refuse_imported(selection.apply(list(items), stage.where))  # before any work, as one error
+    if executor is None:
+        executor = ProcessExecutor(workers=workers, quiet=quiet, label=lambda task: task["id"])
+    return run_stage(stage, selection, executor, progress=progress)
+
+
+def _by_split(rows: Sequence[ManifestRow]) -> dict[str, list[ManifestRow]]:
+    groups: dict[str, list[ManifestRow]] = {}
+    for row in rows:
+        groups.setdefault(row.split, []).append(row)
+    return groups
+
+
+def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path, quality: str = "paper",
+                workers: int = 1, device: str = "auto", config_dirs: Sequence[str | Path] = (),
+                progress: bool = True, quiet: bool = True, executor: Executor | None = None,
+                threads: int | None = None) -> tuple[list[str], list[Failure]]:
+    """Render the rows that are not up to date into DATA/<split>/<id>/ (see the module docstring); returns
+    (ids rendered now, failures). ``registry`` must be the one ``config_dirs`` produce. ``executor`` None:
+    each example in a child process, ``workers`` at once; ``threads``: Blender's per example (default: the
+    CPUs shared among the workers)."""
+    threads = threads if threads is not None else render_threads(workers)
+    done: list[str] = []
+    failures: list[Failure] = []
+    for split, group in _by_split(rows).items():
+        stage = RenderStage(data_dir, split, group, registry, quality, device, threads, config_dirs)
+        report = render_stage(stage, executor=executor, workers=workers, quiet=quiet, progress=progress)
+        done += report.ran
+        failures += [Failure(i, why) for i, why in report.failed.items()]
+    return done, failures
+
+
+def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str,
+                   registry: Registry | None = None) -> list[ManifestRow]:
+    """The rows a render at ``preset`` would render now (a dry run of the driver's decision: nothing is
+    written or removed); bundles imported from the published set raise UserError, as the render does."""
+    registry = registry or load_registry()
+    todo: list[ManifestRow] = []
+    for split, group in _by_split(rows).items():
+        stage = RenderStage(data_dir, split, group, registry, preset)
+        items = stage.items()
+        ids = list(items)
+        stage.refuse_imported(ids)
+        tasks = plan(stage, ids, items, StageReport(stage.name, stage.root, selected=ids), write=False)
+        todo += [stage.rows[t["id"]] for t in tasks]
+    return todo
+
+
 # -- one example, in this process ------------------------------------------------------------------
 
 
 def render_to_bundle(row: ManifestRow, registry: Registry, preset: RenderPreset, data_dir: Path,
                      device: str = "auto", threads: int | None = None,
                      on_frame: Callable[[int, int], None] | None = None) -> Path:
-    """Render one manifest row into DATA/<split>/<id>/ in this process; returns the bundle path.
+    """Render one manifest row into DATA/<split>/<id>/ in this process, outside the stage driver (no ledger:
+    a later ``render`` takes the bundle over when it is complete at the preset asked for); returns its path.
 
     Raises SpecError, BundleError, RuntimeError or OSError naming the example."""
     spec = build_scene_spec(row, registry)
@@ -106,248 +311,18 @@ def render_to_bundle(row: ManifestRow, registry: Registry, preset: RenderPreset,
                        on_frame=on_frame)
 
 
-# -- child processes -----------------------------------------------------------------------------------
-#
-# Each example runs in ``python -c "...; _child_main()"`` (not multiprocessing, whose spawn mode
-# re-imports the caller's __main__). The job comes as one JSON argument; progress comes back as JSON
-# lines on a pipe whose descriptor is the second argument, so Blender's own stdout stays separate.
-
-_CHILD_CODE = "from rigidbench.pipeline.render import _child_main; _child_main()"
-
-
-def _die_with_parent() -> None:
-    """Linux: have the kernel kill this worker when the parent process dies (no orphaned renders)."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
-def _child_main() -> None:
-    """Worker entry: argv = [job JSON, message fd]. Renders one example; reports on the message pipe."""
-    import json
-
-    _die_with_parent()
-    job = json.loads(sys.argv[1])
-    out = os.fdopen(int(sys.argv[2]), "w", buffering=1)
-
-    def send(*msg: Any) -> None:
-        out.write(json.dumps(msg) + "\n")
-
-    row = ManifestRow.from_dict(job["row"])
-    logging.basicConfig(level=logging.WARNING, format=f"%(levelname)s [{row.sample_id}] %(name)s: %(message)s")
-    try:
-        reg = load_registry(job["config_dirs"])
-        path = render_to_bundle(row, reg, reg.preset(job["preset"]), Path(job["data_dir"]), device=job["device"],
-                                threads=job["threads"], on_frame=lambda done, total: send("frame", done, total))
-    except (*EXAMPLE_ERRORS, RuntimeError, ImportError) as exc:  # RuntimeError: Blender's own errors
-        send("failed", f"{type(exc).__name__}: {exc}")
-        return
-    send("done", str(path))
-
-
-def _exit_reason(code: int | None) -> str:
-    if code is not None and code < 0:
-        try:
-            return f"worker process killed by {signal.Signals(-code).name}"
-        except ValueError:
-            return f"worker process killed by signal {-code}"
-    return f"worker process exited with code {code} without a result (see the traceback above)"
-
-
-@dataclass
-class _Child:
-    row: ManifestRow
-    proc: Any
-    fd: int
-    buffer: bytes = b""
-    outcome: str | None = None  # "done" or the failure reason
-    frames: int = 0
-
-
-def _start_child(row: ManifestRow, job: dict, quiet: bool) -> _Child:
-    import json
-    import subprocess
-
-    r, w = os.pipe()
-    try:
-        proc = subprocess.Popen([sys.executable, "-c", _CHILD_CODE, json.dumps({**job, "row": row.to_dict()}), str(w)],
-                                pass_fds=(w,), stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL if quiet else None)
-    finally:
-        os.close(w)
-    return _Child(row=row, proc=proc, fd=r)
-
-
-def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path, quality: str = "paper",
-                workers: int = 1, device: str = "auto", config_dirs: Sequence[str | Path] = (),
-                progress: bool = True, quiet: bool = True) -> tuple[list[str], list[Failure]]:
-    """Render every incomplete row, each in a child process, ``workers`` at a time.
-
-    Returns (ids rendered now, failures). Complete bundles are skipped; ``registry`` must be the
-    one ``config_dirs`` produce (children rebuild it from the directories). ``quiet`` hides
-    Blender's per-frame console output."""
-    import json
-    import selectors
-
-    from tqdm import tqdm
-
-    preset = registry.preset(quality)
-    if workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {workers}")
-    todo = rows_to_render(rows, data_dir, quality)
-    skipped = len(rows) - len(todo)
-    if skipped:
-        log.info("%d of %d examples already have complete bundles in %s; skipping them", skipped, len(rows), data_dir)
-    threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None
-    job = {"config_dirs": [str(d) for d in config_dirs], "preset": quality, "data_dir": str(Path(data_dir).resolve()),
-           "device": device, "threads": threads}
-    pending = list(todo)
-    running: dict[int, _Child] = {}
-    done_ids: list[str] = []
-    failures: list[Failure] = []
-    show = progress and bool(todo)
-    bar = tqdm(total=len(todo), desc="examples", unit="ex", disable=not show, position=0)
-    frame_bar = tqdm(total=len(todo) * 2 * preset.frames, desc="frames (passes + RGB)", unit="fr",
-                     disable=not show, position=1)
-    sel = selectors.DefaultSelector()
-
-    def handle(child: _Child, line: bytes) -> None:
-        try:
-            msg = json.loads(line)
-        except ValueError:
-            log.warning("example %s: unreadable worker message %r", child.row.sample_id, line[:200])
-            return
-        if msg[0] == "frame":
-            done, total = int(msg[1]), int(msg[2])
-            if frame_bar.total != len(todo) * total:
-                frame_bar.total = len(todo) * total
-                frame_bar.refresh()
-            frame_bar.update(done - child.frames)
-            child.frames = done
-        elif msg[0] == "done":
-            child.outcome = "done"
-        else:
-            child.outcome = str(msg[1])
-
-    def finish(child: _Child) -> None:
-        sel.unregister(child.fd)
-        os.close(child.fd)
-        del running[child.fd]
-        code = child.proc.wait()
-        outcome = child.outcome or _exit_reason(code)
-        bar.update(1)
-        if outcome == "done":
-            done_ids.append(child.row.sample_id)
-        else:
-            failures.append(Failure(child.row.sample_id, outcome))
-            bar.write(f"FAILED {child.row.sample_id}: {outcome}")
-        bar.set_postfix_str(", ".join(c.row.sample_id for c in running.values()))
-
-    try:
-        while pending or running:
-            while pending and len(running) < workers:
-                child = _start_child(pending.pop(0), job, quiet)
-                running[child.fd] = child
-                sel.register(child.fd, selectors.EVENT_READ, child)
-                bar.set_postfix_str(", ".join(c.row.sample_id for c in running.values()))
-            for key, _ in sel.select(timeout=POLL_S):
-                child = key.data
-                chunk = os.read(child.fd, 65536)
-                if not chunk:  # the worker closed its end: it has exited (or is exiting)
-                    if child.buffer:
-                        handle(child, child.buffer)
-                    finish(child)
-                    continue
-                child.buffer += chunk
-                *lines, child.buffer = child.buffer.split(b"\n")
-                for line in lines:
-                    if line.strip():
-                        handle(child, line)
-    except KeyboardInterrupt:
-        for child in running.values():
-            child.proc.terminate()
-        for child in running.values():
-            child.proc.wait(5)
-        raise
-    finally:
-        for child in list(running.values()):
-            os.close(child.fd)
-        sel.close()
-        frame_bar.close()
-        bar.close()
-    return done_ids, failures
-
-
-# -- on a Ray cluster -------------------------------------------------------------------------------------
-
-
-RENDER_WORKER = "rigidbench.pipeline.render:RenderWorker"
-
-
-class RenderWorker:
-    """Renders one manifest row (a dict) per call into the shared data directory, in the worker's own
-    process (a Ray actor: a Blender crash kills the actor, and Ray runs the example again elsewhere)."""
-
-    def __init__(self, job: dict):
-        self.job = job
-        self.registry = load_registry(job["config_dirs"])
-        self.preset = self.registry.preset(job["preset"])
-
-    def __call__(self, row: dict) -> dict:
-        sample = ManifestRow.from_dict(row)
-        try:
-            path = render_to_bundle(sample, self.registry, self.preset, Path(self.job["data_dir"]),
-                                    device=self.job["device"], threads=self.job["threads"])
-        except (*EXAMPLE_ERRORS, RuntimeError) as exc:  # RuntimeError: Blender's own errors
-            return {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
-        return {"status": "succeeded", "path": str(path)}
-
-
-def render_rows_with(executor: Executor, rows: Sequence[ManifestRow], registry: Registry, data_dir: Path,
-                     quality: str = "paper", device: str = "auto", config_dirs: Sequence[str | Path] = (),
-                     threads: int | None = None, progress: bool = True) -> tuple[list[str], list[Failure]]:
-    """``render_rows`` through an executor (one Ray actor per CPU set by default): same bundles, same layout."""
-    from tqdm import tqdm
-
-    registry.preset(quality)  # an unknown preset fails here, not on every worker
-    todo = rows_to_render(rows, data_dir, quality)
-    job = {"config_dirs": [str(d) for d in config_dirs], "preset": quality,
-           "data_dir": str(Path(data_dir).resolve()), "device": device, "threads": threads}
-    done_ids: list[str] = []
-    failures: list[Failure] = []
-    bar = tqdm(total=len(todo), desc="examples", unit="ex", disable=not progress or not todo)
-
-    def collect(row: dict, record: dict) -> None:
-        if record.get("status") == "succeeded":
-            done_ids.append(row["sample_id"])
-        else:
-            failures.append(Failure(row["sample_id"], record.get("error", "failed")))
-            bar.write(f"FAILED {row['sample_id']}: {failures[-1].reason}")
-        bar.update(1)
-
-    try:
-        executor.map(RENDER_WORKER, job, [r.to_dict() for r in todo], Resources(num_cpus=threads or 1),
-                     on_result=collect)
-    finally:
-        bar.close()
-    return sorted(done_ids), failures
-
-
 # -- command line ------------------------------------------------------------------------------------------
 
 
-def _ids(values: Sequence[str] | None) -> list[str]:
-    return [v.strip() for chunk in (values or []) for v in chunk.replace(",", " ").split() if v.strip()]
+def _settings_changed(why: str) -> bool:
+    return why == SETTINGS_CHANGED or why.startswith("the bundle was rendered at")
 
 
 def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
     reg = ctx.registry
-    try:
-        rows = manifest.select(manifest.rows(args.split, reg), _ids(args.ids) or None, args.limit)
-    except KeyError as exc:
-        raise UserError(exc.args[0]) from None
+    candidates = manifest.rows(args.split, reg)
+    selection = Selection.of(selected_ids(args), args.limit, getattr(args, "shard", None))
+    selection.apply([r.sample_id for r in candidates], f"the {args.split} manifest")  # unknown ids: fail first
     if args.quality not in reg.presets:
         raise UserError(f"unknown quality '{args.quality}'; presets: {', '.join(reg.presets)}")
     if not bpy_available():
@@ -359,30 +334,34 @@ def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
     if B.bundle_dirs(data):
         raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
                         f"DATA/<split>/; did you mean --data {data.parent}?")
-    rows = Shard.parse(getattr(args, "shard", None)).select(rows)
+    threads = render_threads(args.workers)
+    stage = RenderStage(data, args.split, candidates, reg, args.quality, args.device, threads, ctx.config_dirs)
+    executor = None
     if getattr(args, "executor", "local") == "ray":
-        executor = make_executor("ray", ray_address=args.ray_address, workers=args.workers if args.workers > 1 else None)
-        done, failures = render_rows_with(executor, rows, reg, data, quality=args.quality, device=args.device,
-                                          config_dirs=ctx.config_dirs, progress=not args.no_progress)
-    else:
-        done, failures = render_rows(rows, reg, data, quality=args.quality, workers=args.workers, device=args.device,
-                                     config_dirs=ctx.config_dirs, progress=not getattr(args, "no_progress", False),
-                                     quiet=not getattr(args, "verbose", False))
-    skipped = len(rows) - len(done) - len(failures)
-    print(f"rendered {len(done)}, skipped {skipped} complete, failed {len(failures)} of {len(rows)} "
-          f"{args.split} examples ({args.quality}) into {data / args.split}")
-    for f in failures:
-        print(f"  FAILED {f.sample_id}: {f.reason}", file=sys.stderr)
-    if failures:
+        executor = RayExecutor(address=args.ray_address, workers=args.workers if args.workers > 1 else None)
+    report = render_stage(stage, selection, executor, workers=args.workers, quiet=not getattr(args, "verbose", False),
+                          progress=not getattr(args, "no_progress", False))
+    print(f"rendered {len(report.ran)}, skipped {len(report.reused)} complete, failed {len(report.failed)} of "
+          f"{len(report.selected)} {args.split} examples ({args.quality}) into {stage.root}")
+    changed = [i for i in report.ran if _settings_changed(report.redone.get(i, ""))]
+    if changed:
+        shown = ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else "")
+        print(f"  {len(changed)} of them had been rendered with other settings (preset or configuration) and were "
+              f"rendered again: {shown}")
+    for sample_id, reason in report.failed.items():
+        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
+    if report.interrupted:
+        print(f"  {len(report.interrupted)} examples were not started", file=sys.stderr)
+    if report.failed:
         print("rerun the same command to retry the failed examples; complete bundles are kept", file=sys.stderr)
-    return 1 if failures else 0
+    return 1 if report.failed or report.interrupted else 0
 
 
 def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
     """One contact sheet per id; an example whose bundle is missing or damaged is reported (naming the file
     and what to do) and the others are still written. Exit 1 when any failed."""
     split_dir = B.resolve_split_dir(args.data, args.split)
-    ids = _ids(args.ids)
+    ids = split_ids(args.ids)
     if args.out is not None and len(ids) > 1 and Path(args.out).suffix.lower() == ".png":
         raise UserError(f"--out {args.out}: several examples need a folder for their sheets, not one PNG file")
     failed: dict[str, str] = {}
@@ -413,6 +392,6 @@ def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
     return 1 if failed else 0
 
 
-__all__ = ["Failure", "RenderWorker", "bundle_dir", "is_complete", "rows_to_render", "render_to_bundle",
-           "render_rows", "render_rows_with",
-           "cmd_render", "cmd_show", "QUALITIES"]
+__all__ = ["Failure", "QUALITIES", "RENDER_FORMAT", "RenderStage", "RenderWorker", "bundle_dir", "cmd_render",
+           "cmd_show", "is_complete", "looks", "preset_settings", "render_key", "render_rows",
+           "render_stage", "render_threads", "render_to_bundle", "rows_to_render"]

@@ -5,31 +5,55 @@ For each clip of the preprocessing cache (its normalised reference latent and pr
 noise the latent at each tau (``model.noised_batch``: slot 0 kept clean at timestep 0), run the DiT
 with the clip's text, record every block's output with forward hooks, pool it per actor and slot
 (``pooling``; masks from the clip's bundle in ``--data``) and attach the simulator targets
-(``targets``). Rows are buffered per chunk of clips and written as float16 shards per (block, tau).
+(``targets``).
+
+On the stage driver (``rigidbench.driver``): an item is a clip of the cache, its worker (which loads
+the backbone once) writes the clip's activation file and row table. A clip's key is a digest of the
+settings that determine them (the backbone and its weights, the random backbone's seed, the model,
+the schedule fractions, the noise seed, the forward dtype), of the clip's cache entry
+(``LatentCache.entry_key``) and of its bundle's masks, trajectories and contacts; so a rerun skips the
+clips extracted this way and extracts again exactly those whose key changed, saying why. The probe
+split of every clip is assigned once (``store.assign_splits`` over the clips of the first run; clips
+added later join the training split) and kept in the manifest, which is rebuilt from the ledger after
+every run. A store of an older RigidBench (version 2, chunks) is still read by ``fit`` and
+``intervene``; extracting into it is refused (use a new ``--out``).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from ..atomic import atomic_file
-from ..errors import EXAMPLE_ERRORS, UserError
+from ..driver import (ItemResult, Selection, Stage, StageReport, StageWorker, digest, read_ledger, run_stage,
+                      stage_dir)
+from ..errors import UserError
+from ..executors import Executor, Shard
+from ..folders import CONTACTS_FILE, MASKS_FILE, METADATA_FILE, TRAJECTORIES_FILE
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
+from ..jsonio import write_json
 from ..perception.device import resolve_device
-from ..train.cache import LatentCache
+from ..predictors.wan import detect_checkpoint, fingerprint
+from ..train.cache import LatentCache, bundle_fingerprint, index_lock
 from ..train.objective import FlowMatchingObjective
 from . import model as wan
 from .pooling import pooling_matrix, slot_token_masks
-from .store import MANIFEST, STORE_VERSION, assign_splits, atomic_json, shard_path
+from .store import MANIFEST, STORE_VERSION, acts_file, assign_splits, cell_name, rows_file
 from .targets import TARGETS, sample_targets
 
 log = logging.getLogger(__name__)
+
+STAGE = "probe-extract"
+#: the bundle files a clip's rows depend on
+BUNDLE_FILES = (METADATA_FILE, MASKS_FILE, TRAJECTORIES_FILE, CONTACTS_FILE)
+POOLING = ("per slot: masks merged over the slot's frames, max-pooled to the token grid; mean over an actor's "
+           "covered tokens")
 
 
 @dataclass
@@ -38,8 +62,10 @@ class ExtractSummary:
     extracted: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
+    redone: dict[str, str] = field(default_factory=dict)
     rows: int = 0
     seconds: float = 0.0
+    report: StageReport | None = None
 
 
 def clip_rows(sample: Sample, grid: tuple[int, int, int], frames: int):
@@ -59,120 +85,231 @@ def clip_rows(sample: Sample, grid: tuple[int, int, int], frames: int):
     return w, table
 
 
-def _settings(backbone, model, model_path, cache: LatentCache, split_dir: Path, taus, seed, transformer,
-              backbone_seed=None) -> dict:
-    grid = wan.token_grid(cache.latent_shape, transformer.config.patch_size)
-    random = {"backbone_seed": int(backbone_seed), "random_init": wan.RANDOM_INIT} if backbone == "random" else \
-        {"backbone_seed": None}
-    return {"version": STORE_VERSION, "backbone": str(backbone), **random, "model": model, "model_path": model_path,
-            "cache": str(Path(cache.dir).resolve()), "data": str(split_dir.resolve()),
-            "schedule": wan.schedule_points(taus), "tau_mapping": wan.TAU_MAPPING,
-            "num_train_timesteps": wan.NUM_TRAIN_TIMESTEPS,
-            "shift": wan.SHIFT, "seed": seed, "latent_shape": list(cache.latent_shape),
-            "frames": int(cache.manifest["frames"]), "token_grid": list(grid),
-            "blocks": len(transformer.blocks), "width": int(transformer.config.num_attention_heads
-                                                            * transformer.config.attention_head_dim),
-            "targets": {k: list(v) for k, v in TARGETS.items()}, "dtype": "float16",
-            "pooling": "per slot: masks merged over the slot's frames, max-pooled to the token grid; "
-                       "mean over an actor's covered tokens"}
+def backbone_identity(backbone: str, model: str, model_path: str | None, backbone_seed: int) -> dict:
+    """What the backbone's weights are: base or random (with its seed) of the model's weights, or a checkpoint
+    of ``rigidbench train`` by its files' content (``predictors.wan.fingerprint``), wherever it lies."""
+    ident: dict[str, Any] = {"backbone": backbone if backbone in ("base", "random") else "checkpoint",
+                             "model": model, "model_path": model_path}
+    if backbone == "random":
+        ident["seed"] = int(backbone_seed)
+        ident["random_init"] = wan.RANDOM_INIT
+    elif backbone != "base":
+        found = detect_checkpoint(backbone)
+        ident["checkpoint"] = {"kind": found["kind"], "files": fingerprint(found)}
+    return ident
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+class ExtractStage(Stage):
+    """The clips of a cache (with their bundles) -> the activation store ``out``."""
+
+    name = STAGE
+    worker = "rigidbench.probe.extract:ExtractWorker"
+    unit = "clip"
+
+    def __init__(self, backbone: str, cache_dir, data, out, *, model: str | None = None,
+                 model_path: str | None = None, taus=wan.DEFAULT_TAUS, device: str | None = None, seed: int = 0,
+                 dtype=torch.float32, backbone_seed: int = wan.RANDOM_SEED, limit: int | None = None):
+        self.cache = cache = LatentCache(cache_dir)
+        model = model or str(cache.manifest["model"])
+        if model != cache.manifest["model"]:
+            raise UserError(f"{cache_dir}: the cache was encoded for {cache.manifest['model']}, not --model {model}")
+        self.split_dir = resolve_split_dir(data)
+        self.bundles = {d.name: d for d in bundle_dirs(self.split_dir)}
+        self.out = Path(out)
+        if (self.out / MANIFEST).is_file():
+            try:
+                version = json.loads((self.out / MANIFEST).read_text()).get("version")
+            except ValueError:
+                version = STORE_VERSION  # unreadable: rebuilt from the ledger
+            if version != STORE_VERSION:
+                raise UserError(f"{self.out}: an activation store of an older RigidBench (version {version}); "
+                                "`probe fit` and `probe intervene` still read it, but extraction now keeps one file "
+                                "per clip: extract into a new --out")
+        self.device = str(torch.device(resolve_device(device)))
+        self.dtype = str(dtype).replace("torch.", "")
+        self.taus = [float(t) for t in taus]
+        self.seed, self.limit, self.backbone = int(seed), limit, str(backbone)
+        self.backbone_seed = int(backbone_seed)
+        random = {"backbone_seed": self.backbone_seed, "random_init": wan.RANDOM_INIT} if backbone == "random" \
+            else {"backbone_seed": None}
+        self.settings = {"version": STORE_VERSION, "backbone": self.backbone, **random, "model": model,
+                         "model_path": model_path, "cache": str(Path(cache.dir).resolve()),
+                         "data": str(self.split_dir.resolve()), "schedule": wan.schedule_points(self.taus),
+                         "tau_mapping": wan.TAU_MAPPING, "num_train_timesteps": wan.NUM_TRAIN_TIMESTEPS,
+                         "shift": wan.SHIFT, "seed": self.seed, "latent_shape": list(cache.latent_shape),
+                         "frames": int(cache.manifest["frames"]),
+                         "targets": {k: list(v) for k, v in TARGETS.items()}, "dtype": "float16", "pooling": POOLING}
+        self.model, self.model_path = model, model_path
+        keyed = {k: v for k, v in self.settings.items() if k not in ("backbone", "cache", "data")}
+        self.settings_key = digest(keyed, backbone_identity(self.backbone, model, model_path, self.backbone_seed),
+                                   self.dtype)
+        #: clips of the cache without a bundle in --data (reported as failed, as before)
+        self.missing = {i: f"no bundle {i} in {self.split_dir}" for i in cache.ids if i not in self.bundles}
+
+    @property
+    def root(self) -> Path:
+        return self.out
+
+    @property
+    def where(self) -> str:
+        return f"{self.cache.dir} (clips with a bundle in {self.split_dir})"
+
+    def items(self) -> dict[str, Any]:
+        return {i: {"dir": str(self.bundles[i].resolve())} for i in self.cache.ids if i in self.bundles}
+
+    def key(self, item_id: str, payload: Any) -> str:
+        return digest(self.settings_key, self.cache.entry_key(item_id),
+                      bundle_fingerprint(payload["dir"], BUNDLE_FILES))
+
+    def job(self) -> dict:
+        return {"root": str(self.out.resolve()), "cache": str(Path(self.cache.dir).resolve()),
+                "backbone": self.backbone, "model": self.model, "model_path": self.model_path,
+                "backbone_seed": self.backbone_seed, "device": self.device, "dtype": self.dtype, "taus": self.taus,
+                "seed": self.seed, "settings_key": self.settings_key}
+
+    def intact(self, item_id: str) -> bool:
+        result = (read_ledger(self.out, STAGE, item_id) or {}).get("result") or {}
+        return _files_present(self.out, item_id, result)
+
+    def prepare(self, todo: list[str]) -> None:
+        self._write_index(todo)  # the splits are fixed before any clip runs (a killed run keeps them)
+
+    def finish(self, report: StageReport) -> None:
+        if stage_dir(self.out, STAGE).is_dir():
+            self._write_index([], warn=True)
+
+    def _population(self) -> list[str]:
+        ids = list(self.items())
+        return ids[:self.limit] if self.limit is not None else ids
+
+    def _write_index(self, todo: list[str], warn: bool = False) -> dict:
+        """The manifest: this run's settings, the clips extracted with them (from the ledger), their probe
+        splits (kept; new clips join the training split) and the failures."""
+        sdir = stage_dir(self.out, STAGE)
+        with index_lock(sdir):
+            previous = {}
+            if (self.out / MANIFEST).is_file():
+                try:
+                    previous = json.loads((self.out / MANIFEST).read_text())
+                except ValueError:
+                    previous = {}
+            clips, empty, failed, facts, other = {}, [], {}, {}, []
+            for path in sorted(sdir.glob("*.json")):
+                entry = read_ledger(self.out, STAGE, path.stem)
+                if entry is None:
+                    continue
+                result = entry.get("result") or {}
+                if entry.get("status") == "failed":
+                    failed[path.stem] = entry.get("error") or "failed"
+                    continue
+                if entry.get("status") != "succeeded":
+                    continue
+                if result.get("settings") != self.settings_key:
+                    other.append(path.stem)
+                    continue
+                if not _files_present(self.out, path.stem, result):
+                    continue
+                facts = {k: result[k] for k in ("token_grid", "blocks", "width")}
+                if result["rows"]:
+                    clips[path.stem] = {"rows": int(result["rows"]), "key": entry["key"]}
+                else:
+                    empty.append(path.stem)
+            splits = previous.get("splits") if previous.get("seed") == self.seed else None
+            candidates = self._population() + list(todo) + list(clips)
+            if not splits:
+                splits = assign_splits(list(dict.fromkeys(candidates)), self.seed)
+            for c in candidates:  # clips added after the first run join the training split
+                splits.setdefault(c, "train")
+            for k in ("token_grid", "blocks", "width"):
+                if k not in facts and previous.get("settings_key") == self.settings_key and k in previous:
+                    facts[k] = previous[k]
+            manifest = {**self.settings, **facts, "settings_key": self.settings_key,
+                        "splits": dict(sorted(splits.items())),
+                        "clips": clips, "empty": empty, "failed": {**failed, **self.missing},
+                        "created": previous.get("created") or _now(), "updated": _now()}
+            write_json(self.out / MANIFEST, manifest, sort_keys=True)
+        if other and warn:
+            log.warning("%s: %d clip(s) were extracted with other settings and are not in the store's index (%s)",
+                        self.out, len(other), ", ".join(other[:10]) + (" ..." if len(other) > 10 else ""))
+        return manifest
+
+
+def _files_present(root: Path, clip: str, result: dict) -> bool:
+    if "rows" not in result or not (root / rows_file(clip)).is_file():
+        return False
+    return not result["rows"] or (root / acts_file(clip)).is_file()
+
+
+class ExtractWorker(StageWorker):
+    """One clip per call: the backbone (loaded once, here) on its noised latent at every tau, every block's
+    output pooled per actor and slot -> ``acts/<clip>.safetensors`` and ``rows/<clip>.npz``."""
+
+    def __init__(self, job: dict):
+        super().__init__(job)
+        self.cache = LatentCache(job["cache"])
+        self.dev = torch.device(resolve_device(job["device"]))
+        self.dtype = getattr(torch, job["dtype"])
+        self.transformer = wan.load_backbone(job["backbone"], job["model"], job["model_path"], self.dev, self.dtype,
+                                             seed=job["backbone_seed"])
+        self.obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, self.transformer.config.patch_size)
+        self.grid = tuple(wan.token_grid(self.cache.latent_shape, self.transformer.config.patch_size))
+        self.frames = int(self.cache.manifest["frames"])
+        config = self.transformer.config
+        self.facts = {"token_grid": list(self.grid), "blocks": len(self.transformer.blocks),
+                      "width": int(config.num_attention_heads * config.attention_head_dim)}
+
+    def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
+        from safetensors.numpy import save_file
+
+        w, table = clip_rows(Sample(payload["dir"]), self.grid, self.frames)
+        table["clip"] = np.array([item_id] * len(w), dtype=str)
+        outputs = []
+        if len(w):
+            latent, text = self.cache.batch([self.cache.ids.index(item_id)], dtype=torch.float32)
+            wt = torch.as_tensor(w, device=self.dev)
+            acts = {}
+            taus = self.job["taus"]
+            for n, tau in enumerate(taus):
+                batch = self.obj.prepare(latent, wan.clip_noise(item_id, latent.shape, self.job["seed"]),
+                                         wan.tau_index(tau))
+                store: dict = {}
+                with torch.no_grad(), wan.capture_blocks(self.transformer, store):
+                    wan.forward(self.transformer, batch, text, self.dev, self.dtype)
+                for b in range(len(self.transformer.blocks)):
+                    acts[cell_name(b, tau)] = np.ascontiguousarray(
+                        (wt @ store[b][0].float()).cpu().numpy().astype(np.float16))
+                progress(n + 1, len(taus))
+            (staging / "acts").mkdir()
+            save_file(acts, str(staging / acts_file(item_id)))
+            outputs.append(acts_file(item_id))
+        (staging / "rows").mkdir()
+        np.savez(staging / rows_file(item_id), **table)
+        outputs.append(rows_file(item_id))  # last: the clip's completion mark
+        return ItemResult(outputs=outputs, result={"rows": int(len(w)), "settings": self.job["settings_key"],
+                                                   **self.facts})
+
+    def close(self) -> None:
+        self.transformer = None
 
 
 def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None, model_path: str | None = None,
-                taus=wan.DEFAULT_TAUS, device: str | None = None, limit: int | None = None, chunk_size: int = 64,
-                seed: int = 0, progress: bool = True, dtype=torch.float32,
-                backbone_seed: int = wan.RANDOM_SEED) -> ExtractSummary:
+                taus=wan.DEFAULT_TAUS, device: str | None = None, limit: int | None = None,
+                chunk_size: int | None = None, seed: int = 0, progress: bool = True, dtype=torch.float32,
+                backbone_seed: int = wan.RANDOM_SEED, ids=None, shard: Shard | None = None,
+                executor: Executor | None = None) -> ExtractSummary:
+    """Extract the first ``limit`` clips of the cache (or the ``ids``; this ``shard``'s part) into the store
+    ``out``. ``chunk_size`` is accepted for older callers and unused (version 3 keeps one file pair per clip)."""
     import time
 
-    from safetensors.numpy import save_file
-    from tqdm import tqdm
-
     start = time.perf_counter()
-    cache = LatentCache(cache_dir)
-    model = model or str(cache.manifest["model"])
-    if model != cache.manifest["model"]:
-        raise UserError(f"{cache_dir}: the cache was encoded for {cache.manifest['model']}, not --model {model}")
-    split_dir = resolve_split_dir(data)
-    bundles = {d.name: d for d in bundle_dirs(split_dir)}
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(resolve_device(device))
-    transformer = wan.load_backbone(backbone, model, model_path, dev, dtype, seed=backbone_seed)
-    settings = _settings(backbone, model, model_path, cache, split_dir, taus, seed, transformer, backbone_seed)
-    ids = [i for i in cache.ids if i in bundles][: limit if limit is not None else None]
-    summary = ExtractSummary(out=out)
-    for i in cache.ids:
-        if i not in bundles:
-            summary.failed[i] = f"no bundle {i} in {split_dir}"
-    if (out / MANIFEST).is_file():
-        import json
-
-        manifest = json.loads((out / MANIFEST).read_text())
-        differs = [k for k in ("version", "backbone", "backbone_seed", "model", "schedule", "seed", "latent_shape",
-                               "blocks")
-                   if manifest.get(k) != settings.get(k)]
-        if differs:
-            raise UserError(f"{out}: the store was extracted with other settings ({', '.join(differs)}); "
-                            "use a new --out")
-    else:
-        manifest = {**settings, "splits": assign_splits(ids, seed), "chunks": [], "failed": {},
-                    "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-        atomic_json(out / MANIFEST, manifest)
-    done = {c for chunk in manifest["chunks"] for c in chunk["clips"]} | set(manifest.get("empty", []))
-    todo = [i for i in ids if i not in done]
-    summary.skipped = [i for i in ids if i in done]
-    for i in todo:  # clips added to the cache after the first run join the training split
-        manifest["splits"].setdefault(i, "train")
-    obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, transformer.config.patch_size)
-    grid = tuple(settings["token_grid"])
-    frames = settings["frames"]
-    bar = tqdm(total=len(todo), unit="clip", desc=f"extract {backbone}", disable=not progress)
-    for c0 in range(0, len(todo), chunk_size):
-        chunk_ids = todo[c0:c0 + chunk_size]
-        acts: dict[tuple[int, float], list[np.ndarray]] = {}
-        tables, written, empty = [], [], []
-        for clip in chunk_ids:
-            try:
-                w, table = clip_rows(Sample(bundles[clip]), grid, frames)
-            except EXAMPLE_ERRORS as exc:
-                summary.failed[clip] = str(exc)
-                bar.update(1)
-                continue
-            if len(w) == 0:
-                empty.append(clip)
-                bar.update(1)
-                continue
-            latent, text = cache.batch([cache.ids.index(clip)], dtype=torch.float32)
-            wt = torch.as_tensor(w, device=dev)
-            for tau in taus:
-                batch = obj.prepare(latent, wan.clip_noise(clip, latent.shape, seed), wan.tau_index(tau))
-                store: dict = {}
-                with torch.no_grad(), wan.capture_blocks(transformer, store):
-                    wan.forward(transformer, batch, text, dev, dtype)
-                for b in range(len(transformer.blocks)):
-                    acts.setdefault((b, tau), []).append((wt @ store[b][0].float()).cpu().numpy().astype(np.float16))
-            table["clip"] = np.array([clip] * len(w), dtype=str)
-            table["split"] = np.array([manifest["splits"][clip]] * len(w), dtype=str)
-            tables.append(table)
-            written.append(clip)
-            summary.rows += len(w)
-            bar.update(1)
-        if written:
-            name = f"chunk-{len(manifest['chunks']):05d}"
-            for (b, tau), parts in acts.items():
-                path = shard_path(out, b, tau, name)
-                path.parent.mkdir(parents=True, exist_ok=True)
-                with atomic_file(path) as tmp:
-                    save_file({"h": np.ascontiguousarray(np.concatenate(parts))}, str(tmp))
-            rows = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
-            (out / "rows").mkdir(exist_ok=True)
-            with atomic_file(out / "rows" / f"{name}.npz", suffix=".npz") as tmp:
-                np.savez(tmp, **rows)
-            manifest["chunks"].append({"name": name, "clips": written, "rows": int(len(rows["clip"]))})
-        manifest.setdefault("empty", []).extend(empty)
-        manifest["failed"].update(summary.failed)
-        manifest["updated"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        atomic_json(out / MANIFEST, manifest)
-        summary.extracted += written
-    bar.close()
-    summary.seconds = time.perf_counter() - start
-    return summary
+    stage = ExtractStage(backbone, cache_dir, data, out, model=model, model_path=model_path, taus=taus,
+                         device=device, seed=seed, dtype=dtype, backbone_seed=backbone_seed, limit=limit)
+    report = run_stage(stage, Selection.of(ids, limit, shard), executor, progress=progress)
+    rows = {i: int(report.results[i].get("rows", 0)) for i in report.ran}
+    return ExtractSummary(out=Path(out), extracted=[i for i in report.ran if rows[i]], skipped=list(report.reused),
+                          failed={**report.failed, **stage.missing}, redone=dict(report.redone),
+                          rows=sum(rows.values()), seconds=time.perf_counter() - start, report=report)

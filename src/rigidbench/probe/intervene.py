@@ -8,8 +8,7 @@ alpha (variances from INLP's training rows, as in the release). The clips are th
 the store's clips sorted by id (``clip_split="all"``, the release's: its first 100 ids of the
 training corpus, whatever their probe split), or of its training-split clips (``"train"``). Bases
 fitted by an older INLP (``BASES_VERSION``) are refitted, not reused. For each chosen clip, under the
-same noised latent as
-extraction: the baseline forward (recording every block's output and the time embedding), then per
+same noised latent as extraction: the baseline forward (recording every block's output and the time embedding), then per
 block and variant
 
 * full model: the block's output h is replaced by h - alpha (h B) B^T on every token and the forward
@@ -23,22 +22,36 @@ Loss: unweighted MSE to the velocity target over slots 1.. (slot 0 is the clean 
 At the last block both readouts are the same computation. Clip-level means over blocks and taus are
 bootstrapped over clips (``rigidbench.stats.bootstrap_ci``, 20,000 resamples, seed 0).
 
-Outputs: bases/b00_tau0.3.npz, bases.csv (rank, K, alpha, variances, INLP R^2 path), effects.jsonl
-(one line per clip x block x tau x variant x readout; a rerun skips done clips), effects_by_cell.csv,
+Outputs: bases/b00_tau0.3.npz, bases.csv (rank, K, alpha, variances, INLP R^2 path), effects/<clip>.jsonl
+and effects.jsonl (all of them: one line per clip x block x tau x variant x readout), effects_by_cell.csv,
 summary.csv and intervene.json.
+
+On the stage driver (``rigidbench.driver``), in two stages. ``probe-bases``: an item is a block x tau
+cell, its key the store's content (every clip's extraction key and the store's settings) and INLP's
+settings (``BASES_VERSION``, ridge, stopping R^2, iterations, dtype); so a store that gained or changed
+clips has its bases fitted again, and bases files made before ledgers existed (or copied from another
+output folder of the same store) are reused when they say they were fitted this way. ``probe-intervene``:
+an item is a clip, its key the intervention settings (taus, blocks, readout, dtype), the store, every
+cell's bases (their digests), the clip's extraction key and its cache entry; a rerun skips the clips
+done this way and redoes exactly those whose key changed, saying why. The summary tables are computed
+after every run over the selected clips that are done (``--resamples`` alone redoes no clip). An
+``effects.jsonl`` of an older RigidBench (no per-clip files) is not reused: its clips run again.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..atomic import atomic_file
+from ..driver import ItemResult, Selection, Stage, StageWorker, digest, read_ledger, run_stage
 from ..errors import UserError
 from ..perception.device import resolve_device
 from ..stats.bootstrap import bootstrap_ci
@@ -75,49 +88,254 @@ def fit_bases(x: np.ndarray, position: np.ndarray, ridge: float = RIDGE, min_r2:
             "version": BASES_VERSION}
 
 
+def _bases_digest(cell: dict) -> str:
+    """A digest of one cell's three bases as stored (float32)."""
+    h = hashlib.sha256()
+    for k in ("position", "random", "pc"):
+        a = np.ascontiguousarray(np.asarray(cell[k], dtype=np.float32))
+        h.update(f"{k}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def cell_id(block: int, tau: float) -> str:
+    return f"b{block:02d}_{tau_name(tau)}"
+
+
+def bases_path(root: Path, block: int, tau: float) -> Path:
+    return Path(root) / "bases" / f"{cell_id(block, tau)}.npz"
+
+
+def _load_bases(path: Path) -> tuple[dict, dict]:
+    """(arrays {"position", "random", "pc"}, facts) of a bases file."""
+    with np.load(path, allow_pickle=False) as z:
+        cell = {k: z[k] for k in z.files}
+    return cell, json.loads(str(cell.pop("facts")))
+
+
+def bases_key(store_digest: str, inlp_dtype: str, block: int, tau: float) -> str:
+    """What determines a cell's bases: the store's rows and activations, the cell, INLP's settings."""
+    return digest("inlp-bases", BASES_VERSION, store_digest, int(block), float(tau), RIDGE, MIN_R2, MAX_ITER, 0,
+                  str(inlp_dtype))
+
+
+class BasesStage(Stage):
+    """The block x tau cells -> ``bases/bNN_tauT.npz``: INLP on all the store's rows of the cell, and its two
+    controls (``fit_bases``). A cell's key is the store's content and INLP's settings, so a store that
+    gained clips has its bases fitted again; bases made before ledgers existed (or copied from another
+    output folder of the same store) are reused."""
+
+    name = "probe-bases"
+    worker = "rigidbench.probe.intervene:BasesWorker"
+    unit = "cell"
+
+    def __init__(self, store: ActivationStore, out: Path, cells: list[tuple[int, float]], device: str,
+                 inlp_dtype: str):
+        self.store, self.out, self.cells = store, Path(out), cells
+        self.device, self.inlp_dtype = device, inlp_dtype
+        self.store_digest = digest(store.identity)
+
+    @property
+    def root(self) -> Path:
+        return self.out
+
+    def items(self) -> dict[str, Any]:
+        return {cell_id(b, tau): {"block": b, "tau": tau} for b, tau in self.cells}
+
+    def key(self, item_id: str, payload: Any) -> str:
+        return bases_key(self.store_digest, self.inlp_dtype, payload["block"], payload["tau"])
+
+    def job(self) -> dict:
+        return {"acts": str(self.store.dir.resolve()), "store_digest": self.store_digest, "device": self.device,
+                "inlp_dtype": self.inlp_dtype}
+
+    def intact(self, item_id: str) -> bool:
+        """The cell's bases file is there and says it was fitted with the ledger's key (not, e.g., copied over
+        from another store's output)."""
+        path = self.out / "bases" / f"{item_id}.npz"
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                made_with = json.loads(str(z["facts"])).get("key")
+        except (OSError, ValueError, KeyError):
+            return False
+        return made_with is None or made_with == (read_ledger(self.out, self.name, item_id) or {}).get("key")
+
+    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+        path = self.out / "bases" / f"{item_id}.npz"
+        if not path.is_file():
+            return None
+        try:
+            cell, facts = _load_bases(path)
+        except (OSError, ValueError, KeyError):
+            return None
+        if facts.get("key", key) != key or facts.get("version") != BASES_VERSION:
+            return None  # fitted for another store, with other settings, or by an older INLP: fitted again
+        return {**facts, "digest": _bases_digest(cell)}
+
+
+class BasesWorker(StageWorker):
+    def __init__(self, job: dict):
+        super().__init__(job)
+        self.store = ActivationStore(job["acts"])
+        self.position = self.store.rows["position"].astype(np.float64)
+        self.device = inlp_device(job["device"])
+        self.dtype = getattr(torch, job["inlp_dtype"])
+
+    def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
+        b, tau = int(payload["block"]), float(payload["tau"])
+        fitted = fit_bases(self.store.cell(b, tau), self.position, device=self.device, dtype=self.dtype)
+        info = {k: v for k, v in fitted.items() if k not in ("position", "random", "pc")}
+        info["key"] = bases_key(self.job["store_digest"], self.job["inlp_dtype"], b, tau)
+        cell = {k: fitted[k].astype(np.float32) for k in ("position", "random", "pc")}
+        rel = f"bases/{item_id}.npz"
+        (staging / "bases").mkdir()
+        np.savez(staging / rel, facts=json.dumps(info), **cell)
+        return ItemResult(outputs=[rel], result={**info, "digest": _bases_digest(cell)})
+
+
+class InterveneStage(Stage):
+    """The chosen clips -> ``effects/<clip>.jsonl`` (one line per block x tau x variant x readout)."""
+
+    name = "probe-intervene"
+    worker = "rigidbench.probe.intervene:InterveneWorker"
+    unit = "clip"
+
+    def __init__(self, store: ActivationStore, cache: LatentCache, out: Path, clips: list[str], *, taus, blocks,
+                 full_readout: str, dtype: str, device: str, bases: dict[str, str]):
+        self.store, self.cache, self.out, self.clips = store, cache, Path(out), clips
+        man = store.manifest
+        self.settings = {"taus": taus, "blocks": blocks, "full_readout": full_readout, "dtype": dtype,
+                         "variants": list(VARIANTS), "readouts": list(READOUTS)}
+        self.backbone = {"backbone": man["backbone"], "model": man["model"], "model_path": man.get("model_path"),
+                         "backbone_seed": man.get("backbone_seed"), "seed": man["seed"]}
+        self.device = device
+        #: every cell's bases digest, in cell order
+        self.bases = bases
+        self.settings_key = digest(self.settings, digest(store.identity), bases)
+
+    @property
+    def root(self) -> Path:
+        return self.out
+
+    @property
+    def where(self) -> str:
+        return f"{self.store.dir} (clips also in {self.cache.dir})"
+
+    def items(self) -> dict[str, Any]:
+        return {c: {} for c in self.clips}
+
+    def key(self, item_id: str, payload: Any) -> str:
+        return digest(self.settings_key, self.store.clip_key(item_id), self.cache.entry_key(item_id))
+
+    def job(self) -> dict:
+        return {"root": str(self.out.resolve()), "cache": str(Path(self.cache.dir).resolve()), **self.settings,
+                **self.backbone, "device": self.device}
+
+    def intact(self, item_id: str) -> bool:
+        return (self.out / effects_file(item_id)).is_file()
+
+
+def effects_file(clip: str) -> str:
+    return f"effects/{clip}.jsonl"
+
+
+class InterveneWorker(StageWorker):
+    """One clip per call: the baseline forward at each tau, then per block and variant the two readouts with
+    the block's output projected off the basis. The backbone and the bases load once, here."""
+
+    def __init__(self, job: dict):
+        super().__init__(job)
+        self.cache = LatentCache(job["cache"])
+        self.dev = torch.device(resolve_device(job["device"]))
+        self.dtype = getattr(torch, job["dtype"])
+        seed = wan.RANDOM_SEED if job.get("backbone_seed") is None else int(job["backbone_seed"])
+        self.transformer = wan.load_backbone(job["backbone"], job["model"], job.get("model_path"), self.dev,
+                                             self.dtype, seed=seed)
+        self.obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, self.transformer.config.patch_size)
+        self.bases, self.alphas = {}, {}
+        for b in job["blocks"]:
+            for tau in job["taus"]:
+                cell, facts = _load_bases(bases_path(Path(job["root"]), b, tau))
+                self.bases[(b, tau)] = {k: torch.as_tensor(v, device=self.dev, dtype=torch.float32)
+                                        for k, v in cell.items()}
+                self.alphas[(b, tau)] = float(facts["alpha_pc"])
+
+    def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
+        transformer, dev, dtype, clip = self.transformer, self.dev, self.dtype, item_id
+        latent, text = self.cache.batch([self.cache.ids.index(clip)], dtype=torch.float32)
+        lines = []
+        taus = self.job["taus"]
+        for n, tau in enumerate(taus):
+            batch = self.obj.prepare(latent, wan.clip_noise(clip, latent.shape, self.job["seed"]), wan.tau_index(tau))
+            captured: dict = {}
+            with torch.no_grad(), wan.capture_blocks(transformer, captured), \
+                    wan.capture_block_inputs(transformer, captured):
+                base = wan.forward(transformer, batch, text, dev, dtype)
+            loss0 = wan.flow_loss(base, batch)
+            for b in self.job["blocks"]:
+                h = captured[b].float()
+                with torch.no_grad():
+                    direct0 = wan.flow_loss(wan.direct_head(transformer, captured[b], captured["temb"],
+                                                            batch.noisy.shape), batch)
+                for variant in VARIANTS:
+                    basis = self.bases[(b, tau)][variant]
+                    alpha = self.alphas[(b, tau)] if variant == "pc" else 1.0
+                    with torch.no_grad():
+                        mod = (h - alpha * (h @ basis) @ basis.T).to(captured[b].dtype)
+                        if self.job["full_readout"] == "hook":
+                            with wan.intervene_block(transformer, b, basis, alpha):
+                                full = wan.flow_loss(wan.forward(transformer, batch, text, dev, dtype), batch)
+                        else:
+                            full = wan.flow_loss(wan.resume_from(transformer, b, mod, captured["block_args"],
+                                                                 captured["temb"], batch.noisy.shape), batch)
+                        direct = wan.flow_loss(wan.direct_head(transformer, mod, captured["temb"],
+                                                               batch.noisy.shape), batch)
+                    for readout, l0, l1 in (("full", loss0, full), ("direct", direct0, direct)):
+                        lines.append({"clip": clip, "block": b, "tau": tau, "variant": variant,
+                                      "readout": readout, "loss_base": l0, "loss": l1, "delta": l1 - l0})
+            progress(n + 1, len(taus))
+        rel = effects_file(clip)
+        (staging / "effects").mkdir()
+        (staging / rel).write_text("".join(json.dumps(line) + "\n" for line in lines))
+        return ItemResult(outputs=[rel], result={"lines": len(lines)})
+
+    def close(self) -> None:
+        self.transformer = None
+
+
 def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, blocks=None,
                   n_resamples: int = 20000, device: str | None = None, progress: bool = True,
                   dtype=torch.float32, full_readout: str = "resume", inlp_dtype=torch.float64,
                   clip_split: str = "all") -> dict:
-    from tqdm import tqdm
-
+    """The bases of every block x tau cell (stage ``probe-bases``), then the loss changes on the first
+    ``clips`` clips (stage ``probe-intervene``), then the bootstrap tables over the clips done."""
     store = ActivationStore(acts)
     man = store.manifest
     taus = [float(t) for t in taus]
     for t in taus:
         if not any(abs(t - s) < 1e-9 for s in store.taus):
             raise UserError(f"tau {t} was not extracted into {acts} (it has {store.taus})")
-    blocks = list(range(store.blocks)) if blocks is None else list(blocks)
+    blocks = list(range(store.blocks)) if blocks is None else [int(b) for b in blocks]
     if full_readout not in ("resume", "hook"):
         raise UserError(f"full readout must be resume or hook, got {full_readout!r}")
+    if clip_split not in ("all", "train"):
+        raise UserError(f"clip split must be all or train, got {clip_split!r}")
     out = Path(out)
-    (out / "bases").mkdir(parents=True, exist_ok=True)
-    rows = store.rows
-    position = rows["position"].astype(np.float64)
+    out.mkdir(parents=True, exist_ok=True)
     inlp_dev = inlp_device(None if device is None else resolve_device(device))
-    inlp_dtype = getattr(torch, inlp_dtype) if isinstance(inlp_dtype, str) else inlp_dtype
+    inlp_dtype = str(inlp_dtype).replace("torch.", "")
+    start = time.perf_counter()
 
     # 1. bases per cell (on the full activation corpus)
-    bases, alphas, facts = {}, {}, []
-    for b in blocks:
-        for tau in taus:
-            path = out / "bases" / f"b{b:02d}_{tau_name(tau)}.npz"
-            info = None
-            if path.is_file():
-                with np.load(path, allow_pickle=False) as z:
-                    cell = {k: z[k] for k in z.files}
-                info = json.loads(str(cell.pop("facts")))
-                if info.get("version") != BASES_VERSION:  # fitted by an older INLP: refit
-                    info = None
-            if info is None:
-                fitted = fit_bases(store.cell(b, tau), position, device=inlp_dev, dtype=inlp_dtype)
-                info = {k: v for k, v in fitted.items() if k not in ("position", "random", "pc")}
-                cell = {k: fitted[k] for k in ("position", "random", "pc")}
-                with atomic_file(path, suffix=".npz") as tmp:
-                    np.savez(tmp, facts=json.dumps(info), **{k: v.astype(np.float32) for k, v in cell.items()})
-            bases[(b, tau)] = cell
-            alphas[(b, tau)] = float(info["alpha_pc"])
-            facts.append({"block": b, "tau": tau, **info})
+    cells = [(b, tau) for b in blocks for tau in taus]
+    fitted = run_stage(BasesStage(store, out, cells, str(inlp_dev), inlp_dtype), Selection(), progress=progress)
+    if fitted.failed:
+        raise UserError(f"{acts}: the bases of {len(fitted.failed)} cell(s) could not be fitted ("
+                        + "; ".join(f"{k}: {v}" for k, v in list(fitted.failed.items())[:3]) + ")")
+    facts = []
+    for b, tau in cells:
+        info = {k: v for k, v in fitted.results[cell_id(b, tau)].items() if k not in ("key", "digest")}
+        facts.append({"block": b, "tau": tau, **info})
     with (out / "bases.csv").open("w", newline="") as fh:
         cols = ["block", "tau", "rank", "iterations", "stopped", "k_pc", "alpha_pc", "removed_variance",
                 "top_k_variance", "random_removed_variance", "total_variance", "final_train_r2", "first_heldout_r2",
@@ -129,74 +347,38 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
                         "first_heldout_r2": f["heldout_r2"][0] if f["heldout_r2"] else "",
                         "last_heldout_r2": f["heldout_r2"][-1] if f["heldout_r2"] else ""})
 
-    # 2. the loss changes on the first ``clips`` training clips
+    # 2. the loss changes on the first ``clips`` clips of the store (all, or its training split)
     cache = LatentCache(cache_dir)
-    if clip_split not in ("all", "train"):
-        raise UserError(f"clip split must be all or train, got {clip_split!r}")
-    present = set(rows["clip"])
+    present = set(store.rows["clip"])
     pool = sorted(i for i, s in man["splits"].items() if i in present and (clip_split == "all" or s == "train"))
-    chosen = [i for i in pool if i in cache.manifest["examples"]][:clips]
-    if not chosen:
+    candidates = [i for i in pool if i in cache.manifest["examples"]]
+    if not candidates[:clips]:
         raise UserError(f"{acts}: no {'training-split ' if clip_split == 'train' else ''}clips of the store are in "
                         f"the cache {cache_dir}")
-    dev = torch.device(resolve_device(device))
-    transformer = wan.load_backbone(man["backbone"], man["model"], man.get("model_path"), dev, dtype)
-    obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, transformer.config.patch_size)
-    eff_path = out / "effects.jsonl"
-    effects = [json.loads(x) for x in eff_path.read_text().splitlines() if x.strip()] if eff_path.is_file() else []
-    done = {e["clip"] for e in effects}
-    start = time.perf_counter()
-    todo = [c for c in chosen if c not in done]
-    bar = tqdm(total=len(todo), unit="clip", desc="intervene", disable=not progress)
-    with eff_path.open("a") as fh:
-        for clip in todo:
-            latent, text = cache.batch([cache.ids.index(clip)], dtype=torch.float32)
-            lines = []
-            for tau in taus:
-                batch = obj.prepare(latent, wan.clip_noise(clip, latent.shape, man["seed"]), wan.tau_index(tau))
-                captured: dict = {}
-                with torch.no_grad(), wan.capture_blocks(transformer, captured), \
-                        wan.capture_block_inputs(transformer, captured):
-                    base = wan.forward(transformer, batch, text, dev, dtype)
-                loss0 = wan.flow_loss(base, batch)
-                for b in blocks:
-                    h = captured[b].float()
-                    with torch.no_grad():
-                        direct0 = wan.flow_loss(wan.direct_head(transformer, captured[b], captured["temb"],
-                                                                batch.noisy.shape), batch)
-                    for variant in VARIANTS:
-                        basis = torch.as_tensor(bases[(b, tau)][variant], device=dev, dtype=torch.float32)
-                        alpha = alphas[(b, tau)] if variant == "pc" else 1.0
-                        with torch.no_grad():
-                            mod = (h - alpha * (h @ basis) @ basis.T).to(captured[b].dtype)
-                            if full_readout == "hook":
-                                with wan.intervene_block(transformer, b, basis, alpha):
-                                    full = wan.flow_loss(wan.forward(transformer, batch, text, dev, dtype), batch)
-                            else:
-                                full = wan.flow_loss(wan.resume_from(transformer, b, mod, captured["block_args"],
-                                                                     captured["temb"], batch.noisy.shape), batch)
-                            direct = wan.flow_loss(wan.direct_head(transformer, mod, captured["temb"],
-                                                                   batch.noisy.shape), batch)
-                        for readout, l0, l1 in (("full", loss0, full), ("direct", direct0, direct)):
-                            lines.append({"clip": clip, "block": b, "tau": tau, "variant": variant,
-                                          "readout": readout, "loss_base": l0, "loss": l1, "delta": l1 - l0})
-            for line in lines:
-                fh.write(json.dumps(line) + "\n")
-            fh.flush()
-            effects += lines
-            bar.update(1)
-    bar.close()
+    stage = InterveneStage(store, cache, out, candidates, taus=taus, blocks=blocks, full_readout=full_readout,
+                           dtype=str(dtype).replace("torch.", ""), device=str(resolve_device(device)),
+                           bases={cell_id(b, tau): fitted.results[cell_id(b, tau)]["digest"] for b, tau in cells})
+    report = run_stage(stage, Selection.of(limit=clips), progress=progress)
+    done = report.succeeded
+    if not done:
+        raise UserError(f"{out}: no clip could be intervened on ("
+                        + "; ".join(f"{k}: {v}" for k, v in list(report.failed.items())[:3]) + ")")
+    effects = [json.loads(line) for clip in done for line in (out / effects_file(clip)).read_text().splitlines()
+               if line.strip()]
+    with atomic_file(out / "effects.jsonl") as tmp:
+        tmp.write_text("".join(json.dumps(e) + "\n" for e in effects))
     seconds = time.perf_counter() - start
     return summarize(effects, facts, out, n_resamples, {"acts": str(Path(acts).resolve()), "backbone": man["backbone"],
                                                         "model": man["model"], "taus": taus, "blocks": blocks,
-                                                        "clips": chosen, "seconds_this_run": seconds,
+                                                        "clips": done, "seconds_this_run": seconds,
                                                         "full_readout": full_readout, "clip_split": clip_split,
                                                         "inlp": {"ridge_per_row": RIDGE, "min_r2": MIN_R2,
                                                                  "max_iter": MAX_ITER, "intercept": False,
                                                                  "centred": False, "r2": "pooled",
-                                                                 "dtype": str(inlp_dtype).replace("torch.", ""),
-                                                                 "device": str(inlp_dev)},
-                                                        "clips_this_run": len(todo)})
+                                                                 "dtype": inlp_dtype, "device": str(inlp_dev)},
+                                                        "clips_this_run": len(report.ran),
+                                                        "bases_fitted_this_run": len(fitted.ran),
+                                                        "failed": report.failed, "redone": report.redone})
 
 
 def summarize(effects: list[dict], facts: list[dict], out: Path, n_resamples: int, meta: dict) -> dict:

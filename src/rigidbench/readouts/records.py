@@ -58,8 +58,9 @@ def summary(readouts: dict) -> dict:
 
 def example_readouts(sample, inputs, scores: dict, out_dir: str | Path) -> dict:
     """Compute every readout of one evaluated example from its MetricInputs, write
-    out/examples/<id>.readouts.json and return the compact summary for its score record; ``scores``
-    name -> MetricResult (IdDrift feeds the identity flag)."""
+    out_dir/examples/<id>.readouts.json and return the compact summary for its score record; ``scores``
+    name -> MetricResult (IdDrift feeds the identity flag). ``out_dir`` is a run folder or a staging folder
+    laid out like one (the evaluate stage's, committed into the run folder by the stage driver)."""
     iddrift = scores.get("iddrift")
     ctx = context_from_sample(sample, inputs, None if iddrift is None else iddrift.value)
     readouts = compute_readouts(ctx)
