@@ -1,4 +1,4 @@
-"""The ``probe`` subcommand: ``rigidbench probe extract|fit|intervene|report`` (paper sections 5.2-5.3,
+"""What ``rigidbench probe extract|fit|intervene|report`` runs (declared in ``commands.probing``) (paper sections 5.2-5.3,
 appendix E; docs/probing.md). Light: torch and the models are imported only when a command runs."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ import sys
 from pathlib import Path
 
 from ..context import RunContext
+from ..argtypes import selected_ids
 from ..errors import UserError
 from ..perception.device import resolve_device
 from ..registry import load_target
-from ..argtypes import positive_int
 
 PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
 INTERVENTION_TAUS = "0.3,0.5,0.7"
@@ -37,19 +37,26 @@ def parse_ints(text: str | None, what: str) -> list[int] | None:
 
 def cmd_extract(args, ctx: RunContext) -> int:
     run_extract = load_target("rigidbench.probe.extract:run_extract", "command")
-    if args.chunk_size < 1:
-        raise UserError(f"--chunk-size must be at least 1, got {args.chunk_size}")
     summary = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
                           model_path=None if args.model_path is None else str(args.model_path),
                           taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
-                          limit=args.limit, chunk_size=args.chunk_size, progress=not args.no_progress,
-                          backbone_seed=args.random_seed)
+                          limit=args.limit, progress=not args.no_progress, backbone_seed=args.random_seed,
+                          ids=selected_ids(args))
     print(f"probe extract ({args.backbone}): {len(summary.extracted)} clips, {summary.rows} actor-slot rows into "
           f"{summary.out} ({len(summary.skipped)} already there, {len(summary.failed)} failed) in "
           f"{summary.seconds:.1f} s")
+    _print_redone(summary.redone, summary.report.ran if summary.report else [])
     for clip, reason in summary.failed.items():
         print(f"  FAILED {clip}: {reason}", file=sys.stderr)
     return 1 if summary.failed and not summary.extracted and not summary.skipped else 0
+
+
+def _print_redone(redone: dict[str, str], ran) -> None:
+    """One line for the clips made again this run and why (the first few)."""
+    again = [i for i in ran if i in redone]
+    if again:
+        print(f"  made again: {len(again)} clips ({'; '.join(f'{i}: {redone[i]}' for i in again[:5])}"
+              f"{' ...' if len(again) > 5 else ''})")
 
 
 def cmd_fit(args, ctx: RunContext) -> int:
@@ -74,9 +81,13 @@ def cmd_intervene(args, ctx: RunContext) -> int:
                  blocks=parse_ints(args.blocks, "--blocks"), n_resamples=args.resamples,
                  device=args.net_device or ctx.device, progress=not args.no_progress, full_readout=args.full_readout,
                  inlp_dtype=args.inlp_dtype, clip_split=args.clip_split)
-    print(f"probe intervene: {len(result['clips'])} clips, {len(result['bases'])} cells into {args.out}")
+    print(f"probe intervene: {len(result['clips'])} clips ({result['clips_this_run']} run now), "
+          f"{len(result['bases'])} cells ({result['bases_fitted_this_run']} fitted now) into {args.out}")
+    _print_redone(result.get("redone", {}), result["clips"])
     for row in result["summary"]:
         print(f"  {row['variant']:>8} {row['readout']:>6}: dL = {row['mean']:.4g} [{row['lo']:.4g}, {row['hi']:.4g}]")
+    for clip, reason in result.get("failed", {}).items():
+        print(f"  FAILED {clip}: {reason}", file=sys.stderr)
     return 0
 
 
@@ -85,76 +96,3 @@ def cmd_report(args, ctx: RunContext) -> int:
     page = report(args.probes or [], args.intervene, args.out)
     print(f"probe report: {page}")
     return 0
-
-
-def add_commands(subparsers) -> None:
-    """Register ``probe`` (with extract, fit, intervene, report) on the ``rigidbench`` subparsers."""
-    probe = subparsers.add_parser("probe", help="probe Wan's transformer for physical state and remove "
-                                                "position subspaces (paper sections 5.2-5.3)")
-    sub = probe.add_subparsers(dest="probe_command", required=True, metavar="{extract,fit,intervene,report}")
-
-    p = sub.add_parser("extract", help="actor-pooled outputs of every DiT block at five noise levels (resumable)")
-    p.add_argument("--backbone", required=True, metavar="base|random|CHECKPOINT",
-                   help="base (pretrained), random (re-initialised DiT) or a `rigidbench train` checkpoint directory")
-    p.add_argument("--cache", type=Path, required=True, help="the cache `rigidbench preprocess` wrote")
-    p.add_argument("--data", type=Path, required=True, help="the bundles the cache was made from (DIR/train)")
-    p.add_argument("--out", type=Path, required=True, help="activation store (created; a rerun skips done clips)")
-    p.add_argument("--model", choices=("wan-2.2", "tiny"), help="default: the cache's model")
-    p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
-    p.add_argument("--taus", default=PAPER_TAUS, help=f"schedule fractions along the training schedule, 0.9 the "
-                                                      f"least noisy (default {PAPER_TAUS})")
-    p.add_argument("--random-seed", type=int, default=0,
-                   help="seed of --backbone random's re-initialisation (default 0, the release's); recorded")
-    p.add_argument("--limit", type=positive_int, help="only the first N clips of the cache (sorted by id)")
-    p.add_argument("--chunk-size", type=int, default=64, help="clips per shard (default 64)")
-    p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_extract)
-
-    p = sub.add_parser("fit", help="linear and MLP probes with shuffled-label controls, per block x tau x target")
-    p.add_argument("--acts", type=Path, required=True, help="the store `probe extract` wrote")
-    p.add_argument("--out", type=Path, required=True, help="directory for scores.csv (a rerun skips done cells)")
-    p.add_argument("--targets", help="comma-separated targets (default: all: position, contact, orientation, ...)")
-    p.add_argument("--probes", default="linear,mlp", help="linear,mlp (default both)")
-    p.add_argument("--blocks", help="comma-separated block indices (default: all)")
-    p.add_argument("--taus", help="comma-separated schedule fractions (default: all extracted)")
-    p.add_argument("--epochs", type=int, default=20)
-    p.add_argument("--batch-size", type=int, default=4096)
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--standardize", action="store_true",
-                   help="z-score activations and continuous targets with training statistics (ours; the release, "
-                        "and the default, fit raw values)")
-    p.add_argument("--r2", choices=("pooled", "mean"), default="pooled",
-                   help="R^2 pooled over a target's dimensions (default, the release's) or the mean of per-dimension R^2")
-    p.add_argument("--device", dest="net_device", help="where probes train, e.g. cuda or cpu (default: CUDA when "
-                                                       "available)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_fit)
-
-    p = sub.add_parser("intervene", help="INLP position subspace vs random and variance-matched PC controls: "
-                                         "loss change through the remaining blocks and the direct head")
-    p.add_argument("--acts", type=Path, required=True, help="the store `probe extract` wrote (its backbone is used)")
-    p.add_argument("--cache", type=Path, required=True, help="the cache the store was extracted from")
-    p.add_argument("--out", type=Path, required=True, help="output directory (a rerun skips done clips)")
-    p.add_argument("--taus", default=INTERVENTION_TAUS, help=f"schedule fractions (default {INTERVENTION_TAUS})")
-    p.add_argument("--clips", type=int, default=100, help="the first N clips by id (default 100)")
-    p.add_argument("--clip-split", choices=("all", "train"), default="all",
-                   help="choose them among all the store's clips (default, the release's) or its training split")
-    p.add_argument("--blocks", help="comma-separated block indices (default: all)")
-    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples over clips (default 20,000)")
-    p.add_argument("--full-readout", choices=("resume", "hook"), default="resume",
-                   help="resume: run the remaining blocks from the recorded block output (default); hook: a "
-                        "forward hook and a whole forward pass (same numbers, about twice the cost)")
-    p.add_argument("--inlp-dtype", choices=("float64", "float32"), default="float64",
-                   help="precision of INLP's Gram matrix and solves (default float64, as the release's ridge)")
-    p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available; INLP runs "
-                                                       "there too)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_intervene)
-
-    p = sub.add_parser("report", help="figures (PNG/PDF), CSV tables and an HTML page of probes and interventions")
-    p.add_argument("--probes", type=Path, nargs="+", help="`probe fit` output directories (one per backbone)")
-    p.add_argument("--intervene", type=Path, help="the `probe intervene` output directory")
-    p.add_argument("--out", type=Path, required=True, help="report directory (index.html)")
-    p.set_defaults(func=cmd_report)

@@ -1,0 +1,87 @@
+"""The ``probe`` command group: extract, fit, intervene, report (what they run: ``probe.commands``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..probe.commands import INTERVENTION_TAUS, PAPER_TAUS
+from . import Command
+
+
+def _extract_arguments(p) -> None:
+    p.add_argument("--backbone", required=True, metavar="base|random|CHECKPOINT",
+                   help="base (pretrained), random (re-initialised DiT) or a `rigidbench train` checkpoint directory")
+    p.add_argument("--cache", type=Path, required=True, help="the cache `rigidbench preprocess` wrote")
+    p.add_argument("--data", type=Path, required=True, help="the bundles the cache was made from (DIR/train)")
+    p.add_argument("--out", type=Path, required=True, help="activation store (created; a rerun skips done clips)")
+    p.add_argument("--model", choices=("wan-2.2", "tiny"), help="default: the cache's model")
+    p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
+    p.add_argument("--taus", default=PAPER_TAUS, help=f"schedule fractions along the training schedule, 0.9 the "
+                                                      f"least noisy (default {PAPER_TAUS})")
+    p.add_argument("--random-seed", type=int, default=0,
+                   help="seed of --backbone random's re-initialisation (default 0, the release's); recorded")
+    p.add_argument("--chunk-size", type=int, default=64,
+                   help="ignored, kept so older scripts run: the store now keeps one file pair per clip")
+    p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _fit_arguments(p) -> None:
+    p.add_argument("--acts", type=Path, required=True, help="the store `probe extract` wrote")
+    p.add_argument("--out", type=Path, required=True, help="directory for scores.csv (a rerun skips done cells)")
+    p.add_argument("--targets", help="comma-separated targets (default: all: position, contact, orientation, ...)")
+    p.add_argument("--probes", default="linear,mlp", help="linear,mlp (default both)")
+    p.add_argument("--blocks", help="comma-separated block indices (default: all)")
+    p.add_argument("--taus", help="comma-separated schedule fractions (default: all extracted)")
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--batch-size", type=int, default=4096)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--standardize", action="store_true",
+                   help="z-score activations and continuous targets with training statistics (ours; the release, "
+                        "and the default, fit raw values)")
+    p.add_argument("--r2", choices=("pooled", "mean"), default="pooled",
+                   help="R^2 pooled over a target's dimensions (default, the release's) or the mean of per-dimension R^2")
+    p.add_argument("--device", dest="net_device", help="where probes train, e.g. cuda or cpu (default: CUDA when "
+                                                       "available)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _intervene_arguments(p) -> None:
+    p.add_argument("--acts", type=Path, required=True, help="the store `probe extract` wrote (its backbone is used)")
+    p.add_argument("--cache", type=Path, required=True, help="the cache the store was extracted from")
+    p.add_argument("--out", type=Path, required=True, help="output directory (a rerun skips done clips)")
+    p.add_argument("--taus", default=INTERVENTION_TAUS, help=f"schedule fractions (default {INTERVENTION_TAUS})")
+    p.add_argument("--clips", type=int, default=100, help="the first N clips by id (default 100)")
+    p.add_argument("--clip-split", choices=("all", "train"), default="all",
+                   help="choose them among all the store's clips (default, the release's) or its training split")
+    p.add_argument("--blocks", help="comma-separated block indices (default: all)")
+    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples over clips (default 20,000)")
+    p.add_argument("--full-readout", choices=("resume", "hook"), default="resume",
+                   help="resume: run the remaining blocks from the recorded block output (default); hook: a "
+                        "forward hook and a whole forward pass (same numbers, about twice the cost)")
+    p.add_argument("--inlp-dtype", choices=("float64", "float32"), default="float64",
+                   help="precision of INLP's Gram matrix and solves (default float64, as the release's ridge)")
+    p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available; INLP runs "
+                                                       "there too)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _report_arguments(p) -> None:
+    p.add_argument("--probes", type=Path, nargs="+", help="`probe fit` output directories (one per backbone)")
+    p.add_argument("--intervene", type=Path, help="the `probe intervene` output directory")
+    p.add_argument("--out", type=Path, required=True, help="report directory (index.html)")
+
+
+COMMANDS = (Command("probe", "probe Wan's transformer for physical state and remove position subspaces "
+                            "(paper sections 5.2-5.3)", subcommands=(
+    Command("extract", "actor-pooled outputs of every DiT block at five noise levels (resumable)",
+            "rigidbench.probe.commands:cmd_extract", _extract_arguments, groups=("selection",)),
+    Command("fit", "linear and MLP probes with shuffled-label controls, per block x tau x target",
+            "rigidbench.probe.commands:cmd_fit", _fit_arguments),
+    Command("intervene", "INLP position subspace vs random and variance-matched PC controls: loss change through "
+                         "the remaining blocks and the direct head",
+            "rigidbench.probe.commands:cmd_intervene", _intervene_arguments),
+    Command("report", "figures (PNG/PDF), CSV tables and an HTML page of probes and interventions",
+            "rigidbench.probe.commands:cmd_report", _report_arguments),
+)),)
