@@ -48,7 +48,7 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 from .atomic import fsync_file
 from .errors import EXAMPLE_ERRORS, UserError
 from .executors import Executor, LocalExecutor, Resources, Shard
-from .jsonio import write_json
+from .jsonio import read_json, write_json
 from .registry import load_target
 
 log = logging.getLogger(__name__)
@@ -200,14 +200,7 @@ def ledger_path(root: str | Path, name: str, item_id: str) -> Path:
 
 def read_ledger(root: str | Path, name: str, item_id: str) -> dict | None:
     """The ledger entry of ``item_id``, or None (absent, or damaged: the example then simply runs again)."""
-    path = ledger_path(root, name, item_id)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError) as exc:
-        log.warning("%s: unreadable (%s); the example runs again", path, type(exc).__name__)
-        return None
+    doc = read_json(ledger_path(root, name, item_id), "the example runs again")
     return doc if isinstance(doc, dict) and doc.get("id") == item_id else None
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from rigidbench.benchmark import find_published_layout, is_published_metadata, published_layout_message
 from rigidbench.firstframe import (MISMATCH_KIND, check_first_frame, mismatch_message, read_first_frame,
                                    read_reference_first_frame)
-from rigidbench.folders import GENERATION_FILE, STATE_SUFFIX
+from rigidbench.folders import GENERATION_FILE, METADATA_FILE, STATE_SUFFIX
 from rigidbench.groundtruth.bundle import bundle_dirs, check_bundle, repair_hint
 from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, VIDEO_EXTENSIONS, VideoError,
                               VideoInfo, aligned_length, check_decodable, probe_video, reference_times)
@@ -102,7 +102,7 @@ class ValidationReport:
 
 def read_reference_specs(data_dir: Path, report: ValidationReport, *, ref_fps: float, ref_frames: int) -> None:
     """Fills report.references from every data_dir/<id>/metadata.json; bad metadata becomes an error."""
-    for meta_path in (d / "metadata.json" for d in bundle_dirs(data_dir)):  # hidden leftovers are not references
+    for meta_path in (d / METADATA_FILE for d in bundle_dirs(data_dir)):  # hidden leftovers are not references
         example_id = meta_path.parent.name
         try:
             meta = json.loads(meta_path.read_text())

@@ -27,7 +27,8 @@ pytest.importorskip("PIL")
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
-from rigidbench.pipeline.predict import GENERATION_FILE, RECORDS_DIR, predict  # noqa: E402
+from rigidbench.folders import GENERATION_FILE, RECORDS_DIR  # noqa: E402
+from rigidbench.pipeline.predict import predict  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
 from rigidbench.predictors.replicate import ReplicateClient  # noqa: E402
 from rigidbench.video import probe_video  # noqa: E402

@@ -26,7 +26,8 @@ from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
 from rigidbench.errors import ConfigError, PredictionError, UserError  # noqa: E402
-from rigidbench.pipeline.predict import GENERATION_FILE, predict  # noqa: E402
+from rigidbench.folders import GENERATION_FILE  # noqa: E402
+from rigidbench.pipeline.predict import predict  # noqa: E402
 from rigidbench.predictors import PREDICTORS, SEED_RULE, Kind, PredictContext, example_seed  # noqa: E402
 from rigidbench.predictors.hosted import HostedPredictor, load_hosted_config, parse_models  # noqa: E402
 from rigidbench.predictors.replicate import CallStats, ClientSettings, Deadline, ReplicateClient  # noqa: E402

@@ -13,6 +13,15 @@ def module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def import_prefix(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module a ``from X import ...`` statement in ``package`` names (relative levels resolved)."""
+    if not node.level:
+        return node.module or ""
+    base = package.split(".")
+    base = base[:len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def imported_modules(path: Path, modules: set[str]) -> set[str]:
     """Our modules that the file at ``path`` imports anywhere (top level or inside functions)."""
     name = module_name(path)
@@ -22,12 +31,7 @@ def imported_modules(path: Path, modules: set[str]) -> set[str]:
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[:len(base) - (node.level - 1)]
-                prefix = ".".join(base + ([node.module] if node.module else []))
-            else:
-                prefix = node.module or ""
+            prefix = import_prefix(node, package)
             targets = [prefix] + [f"{prefix}.{alias.name}" for alias in node.names]
         else:
             continue
@@ -129,14 +133,8 @@ def import_statements(path: Path, modules: set[str]):
                 for alias in child.names:
                     yield child.lineno, ours(alias.name), top, alias.name.partition(".")[0]
             elif isinstance(child, ast.ImportFrom):
-                if child.level:
-                    base = package.split(".")
-                    base = base[:len(base) - (child.level - 1)]
-                    prefix = ".".join(base + ([child.module] if child.module else []))
-                    external = None
-                else:
-                    prefix = child.module or ""
-                    external = prefix.partition(".")[0]
+                prefix = import_prefix(child, package)
+                external = None if child.level else prefix.partition(".")[0]
                 for alias in child.names:
                     yield child.lineno, ours(f"{prefix}.{alias.name}"), top, external
             else:
@@ -329,12 +327,7 @@ def private_uses(source: str, importer: str, is_package: bool, modules: set[str]
     bound: dict[str, str] = {}  # local name -> our module it is bound to
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[:len(base) - (node.level - 1)]
-                prefix = ".".join(base + ([node.module] if node.module else []))
-            else:
-                prefix = node.module or ""
+            prefix = import_prefix(node, package)
             for alias in node.names:
                 dotted = f"{prefix}.{alias.name}"
                 if dotted in modules:

@@ -38,7 +38,8 @@ from rigidbench.datasets.importer import import_published  # noqa: E402
 from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.errors import UserError  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample  # noqa: E402
-from rigidbench.pipeline.predict import GENERATION_FILE, RECORDS_DIR, STAGE, predict, write_prediction  # noqa: E402
+from rigidbench.folders import GENERATION_FILE, RECORDS_DIR  # noqa: E402
+from rigidbench.pipeline.predict import STAGE, predict, write_prediction  # noqa: E402
 from rigidbench.predictors import FailureMode, Kind, PredictContext, PredictorInfo, example_seed  # noqa: E402
 from rigidbench.predictors import image_space  # noqa: E402
 from rigidbench.video import read_video  # noqa: E402

@@ -26,7 +26,8 @@ import tiny_video_models as tiny  # noqa: E402
 from replicate_server import make_split  # noqa: E402
 
 from rigidbench.errors import UserError  # noqa: E402
-from rigidbench.pipeline.predict import GENERATION_FILE, predict, write_prediction  # noqa: E402
+from rigidbench.folders import GENERATION_FILE  # noqa: E402
+from rigidbench.pipeline.predict import predict, write_prediction  # noqa: E402
 from rigidbench.predictors import PREDICTORS, SEED_RULE, PredictContext, example_seed  # noqa: E402
 from rigidbench.video import probe_video, read_video  # noqa: E402
 

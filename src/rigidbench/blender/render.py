@@ -31,6 +31,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..atomic import atomic_dir
 from ..config import RenderPreset, Registry
 from ..groundtruth import bundle as B
 from ..groundtruth.writer import write_bundle
@@ -496,16 +497,19 @@ def render_spec(spec: SceneSpec, registry: Registry, preset: RenderPreset, final
     ``blender.overrides.RenderOverrides``) changes actor materials or rendered poses, not the
     simulation. Returns ``final_dir``."""
     t0 = time.perf_counter()
-    tmp = B.prepare_tmp(final_dir)
-    passes = tmp / ".passes"
-    result = render_example(spec, registry, preset, tmp / B.FRAMES_DIR, passes, device=device, threads=threads,
-                            on_frame=on_frame, overrides=overrides)
-    shutil.rmtree(passes)
-    write_bundle(tmp, result, preset, time.perf_counter() - t0)
-    problems = B.check_bundle(tmp)
-    if problems:
-        raise B.BundleError(f"example {spec.sample_id}: the new bundle in {tmp} is invalid: " + "; ".join(problems))
-    return B.commit(tmp, final_dir)
+    final_dir = Path(final_dir)
+    if final_dir.exists():
+        raise FileExistsError(f"{final_dir}: a bundle already exists; delete it to render this example again")
+    with atomic_dir(final_dir) as tmp:  # .<id>.tmp beside it; a killed render's leftover is removed first
+        passes = tmp / ".passes"
+        result = render_example(spec, registry, preset, tmp / B.FRAMES_DIR, passes, device=device, threads=threads,
+                                on_frame=on_frame, overrides=overrides)
+        shutil.rmtree(passes)
+        write_bundle(tmp, result, preset, time.perf_counter() - t0)
+        problems = B.check_bundle(tmp)
+        if problems:
+            raise B.BundleError(f"example {spec.sample_id}: the new bundle is invalid: " + "; ".join(problems))
+    return final_dir
 
 
 def _with_preset(spec: SceneSpec, preset: str) -> SceneSpec:

@@ -9,7 +9,6 @@ executor and records failures; ``EvaluateWorker`` scores one example into a stag
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -31,6 +30,7 @@ from ..perception.features import FeatureNets, feature_nets_key, load_feature_ne
 from ..video import align_video, aligned_length, read_video, reference_times, resize_frames
 from ..readouts.records import aggregate_readouts, example_readouts
 from .aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
+from ..jsonio import read_json
 from .cache import file_hash, input_key, reference_hash, write_json
 from .protocol import Protocol, get_protocol
 from .provenance import run_info
@@ -150,13 +150,7 @@ def evaluation_resources(perception: str, device: str | None) -> Resources:
 def read_record(path: Path) -> dict | None:
     """The score record at ``path``, or None when there is none or it is damaged (a truncated or foreign file
     is not an error: the example is simply scored again and the file replaced)."""
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError) as exc:
-        log.warning("%s: cannot be read (%s); scoring this example again", path, exc)
-        return None
+    doc = read_json(path, "scoring this example again")
     return doc if isinstance(doc, dict) else None
 
 

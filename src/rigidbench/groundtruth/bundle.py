@@ -24,10 +24,9 @@ from __future__ import annotations
 import functools
 import json
 import math
-import os
-import shutil
 import zipfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
@@ -132,25 +131,6 @@ def make_metadata(spec: SceneSpec, *, resolution: tuple[int, int], frames: int, 
         "simulated_frames": simulated_frames, "depth": DEPTH_CONVENTION, "preset": spec.render_preset,
         "render": render, "software": software, "render_seconds": seconds, "tracks": tracks,
     }
-
-
-def prepare_tmp(final_dir: Path) -> Path:
-    """A fresh temporary sibling of ``final_dir`` (any leftover from a killed run is removed)."""
-    final_dir = Path(final_dir)
-    tmp = final_dir.with_name(f".{final_dir.name}.tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    return tmp
-
-
-def commit(tmp_dir: Path, final_dir: Path) -> Path:
-    """Rename a complete bundle into place (atomic on one file system); refuses to overwrite."""
-    final_dir = Path(final_dir)
-    if final_dir.exists():
-        raise FileExistsError(f"{final_dir}: a bundle already exists; delete it to render this example again")
-    os.replace(tmp_dir, final_dir)
-    return final_dir
 
 
 # -- reading -------------------------------------------------------------------------------------
@@ -438,7 +418,7 @@ def bundle_dirs(split_dir: str | Path) -> list[Path]:
     if not split_dir.is_dir():
         return []
     return sorted(p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
-                  and (p / "metadata.json").is_file())
+                  and (p / METADATA_FILE).is_file())
 
 
 def _holders(root: Path, depth: int = 3) -> list[Path]:
@@ -569,6 +549,168 @@ def is_imported(path: Path) -> bool:
     return isinstance(meta, dict) and bool(meta.get("source"))
 
 
+@dataclass(frozen=True)
+class _Expected:
+    """What every file of a bundle must agree with: its metadata's frames T, size W x H, actors and roles."""
+
+    meta: dict
+    T: int
+    W: int
+    H: int
+    names: list
+    roles: list
+
+    @property
+    def N(self) -> int:
+        return len(self.names)
+
+
+def _check_metadata(path: Path, problems: list[str]) -> _Expected | None:
+    try:
+        meta = _read_json_dict(path / METADATA_FILE)
+        expected = _Expected(meta, int(meta["frames"]), *(int(v) for v in meta["resolution"]),
+                             list(meta["actor_names"]), list(meta["roles"]))
+        K = np.array(meta["camera"]["intrinsics_K"], float)
+        c2w = np.array(meta["camera"]["camera_to_world_blender"], float)
+    except READ_ERRORS as exc:
+        problems.append(f"{METADATA_FILE}: unreadable or missing a required field ({type(exc).__name__}: {exc})")
+        return None
+    roles, N = expected.roles, expected.N
+    _check(problems, K.shape == (3, 3) and c2w.shape == (4, 4), f"{METADATA_FILE}: camera matrices have wrong shapes")
+    _check(problems, len(roles) == N and set(roles) <= {"active", "passive"},
+           f"{METADATA_FILE}: roles {roles} do not match {N} actors with roles active/passive")
+    _check(problems, meta.get("active_indices") == [k for k, r in enumerate(roles) if r == "active"],
+           f"{METADATA_FILE}: active_indices disagree with roles")
+    return expected
+
+
+def _check_frames(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    frame_files = sorted((path / FRAMES_DIR).glob("*.png")) if (path / FRAMES_DIR).is_dir() else []
+    if not _check(problems, [f.name for f in frame_files] == [frame_name(k) for k in range(e.T)],
+                  f"{FRAMES_DIR}/: expected {e.T} frames 00000.png..{frame_name(e.T - 1)}, found {len(frame_files)}"):
+        return
+    from PIL import Image, UnidentifiedImageError
+
+    for f in (frame_files[0], frame_files[-1]):
+        try:
+            with Image.open(f) as im:
+                _check(problems, im.size == (e.W, e.H) and im.mode == "RGB",
+                       f"{FRAMES_DIR}/{f.name}: {im.mode} {im.size[0]}x{im.size[1]}, expected RGB {e.W}x{e.H}")
+        except (OSError, UnidentifiedImageError) as exc:
+            problems.append(f"{FRAMES_DIR}/{f.name}: cannot be read ({exc})")
+
+
+def _check_video(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    try:
+        info = probe_video(path / VIDEO_FILE)
+        _check(problems, (info.width, info.height) == (e.W, e.H) and len(info.times_s) == e.T,
+               f"{VIDEO_FILE}: {len(info.times_s)} frames of {info.width}x{info.height}, expected {e.T} of "
+               f"{e.W}x{e.H}")
+        _check(problems, info.codec == "h264", f"{VIDEO_FILE}: codec {info.codec}, expected h264")
+    except VideoError as exc:
+        problems.append(f"{VIDEO_FILE}: {exc.reason}")
+
+
+def _check_masks(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    masks = _check_npz(path / MASKS_FILE, problems)
+    if masks is None:
+        return
+    if _check_array(problems, MASKS_FILE, masks, "masks", (e.T, e.N, e.H, e.W), "b") is not None and deep:
+        _check_load(problems, MASKS_FILE, masks, "masks")
+    for key, want in (("names", e.names), ("roles", e.roles)):
+        if key in masks.keys:
+            got = _check_load(problems, MASKS_FILE, masks, key)
+            if got is not None:
+                _check(problems, [str(s) for s in got] == want, f"{MASKS_FILE}: {key} differ from metadata")
+        else:
+            problems.append(f"{MASKS_FILE}: missing array '{key}'")
+    masks.close()
+
+
+def _check_depth(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    depth = _check_npz(path / DEPTH_FILE, problems)
+    if depth is None:
+        return
+    if _check_array(problems, DEPTH_FILE, depth, "depth", (e.T, e.H, e.W), "f") is not None:
+        dtype = depth.header("depth")[1]
+        _check(problems, dtype == np.float32, f"{DEPTH_FILE}: depth is {dtype}, expected float32")
+        d = _check_load(problems, DEPTH_FILE, depth, "depth") if deep else None
+        if d is not None:
+            _check(problems, not np.isnan(d).any() and bool((d > 0).all()),
+                   f"{DEPTH_FILE}: depth must be positive (inf for no surface) and never NaN")
+    depth.close()
+
+
+def _check_trajectories(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    traj = Trajectory.load(path / TRAJECTORIES_FILE)
+    _check(problems, list(traj.names) == e.names and list(traj.roles) == e.roles,
+           f"{TRAJECTORIES_FILE}: actors {list(traj.names)} differ from metadata {e.names}")
+    _check(problems, traj.positions_m.shape == (e.N, e.T, 3) and traj.quat_wxyz.shape == (e.N, e.T, 4),
+           f"{TRAJECTORIES_FILE}: positions {traj.positions_m.shape} / quaternions {traj.quat_wxyz.shape}, "
+           f"expected ({e.N},{e.T},3) / ({e.N},{e.T},4)")
+    _check(problems, bool(np.isfinite(traj.positions_m).all() and np.isfinite(traj.quat_wxyz).all()),
+           f"{TRAJECTORIES_FILE}: non-finite poses")
+
+
+def _check_contacts(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    contacts = load_contacts(path / CONTACTS_FILE)
+    bad = [c for c in contacts if not (0 <= c.frame < e.T) or c.a not in e.names or len(c.points_m) > 5
+           or len(c.points_m) != len(c.normals)]
+    _check(problems, not bad, f"{CONTACTS_FILE}: {len(bad)} contacts with a frame outside [0, {e.T}), an "
+                              "unknown first body, or mismatched points and normals")
+
+
+def _check_tracks(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    tracks = _check_npz(path / TRACKS_FILE, problems)
+    if tracks is None:
+        return
+    T, N = e.T, e.N
+    tr = _check_array(problems, TRACKS_FILE, tracks, "tracks", (None, T, 2), "f")
+    P = tr[0] if tr is not None and len(tr) == 3 else None
+    for key, shape, kinds in (("tracks", None, None), ("visibility", (P, T), "b"),
+                              ("query_pixels", (P, 2), ("i", "u")), ("points_body_m", (P, 3), "f")):
+        if shape is None or _check_array(problems, TRACKS_FILE, tracks, key, shape, kinds) is not None:
+            if key in tracks.keys:
+                _check_load(problems, TRACKS_FILE, tracks, key)  # small: read to find damaged data
+    idx = per = None
+    if _check_array(problems, TRACKS_FILE, tracks, "actor_index", (P,), ("i", "u")) is not None:
+        idx = _check_load(problems, TRACKS_FILE, tracks, "actor_index")
+    if _check_array(problems, TRACKS_FILE, tracks, "points_per_actor", (N,), ("i", "u")) is not None:
+        per = _check_load(problems, TRACKS_FILE, tracks, "points_per_actor")
+    if idx is not None and idx.ndim == 1 and len(idx):
+        _check(problems, bool(((idx >= 0) & (idx < N)).all()) and all(e.roles[i] == "active" for i in idx),
+               f"{TRACKS_FILE}: actor_index must point at active actors in [0, {N})")
+    if per is not None and P is not None:
+        _check(problems, int(per.sum()) == P, f"{TRACKS_FILE}: points_per_actor sums to {per.sum()}, not {P}")
+    tracks.close()
+
+
+def _check_prompt(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    prompt = (path / PROMPT_FILE).read_text().strip()
+    _check(problems, bool(prompt) and prompt == e.meta.get("prompt"), f"{PROMPT_FILE}: empty or differs from metadata")
+
+
+def _check_spec(path: Path, e: _Expected, problems: list[str], deep: bool) -> None:
+    try:
+        spec = SceneSpec.from_json((path / SPEC_FILE).read_text())
+    except READ_ERRORS as exc:
+        problems.append(f"{SPEC_FILE}: not a valid SceneSpec ({exc})")
+        return
+    _check(problems, spec.camera is not None and [b.name for b in spec.bodies] == e.names,
+           f"{SPEC_FILE}: no camera, or bodies differ from metadata actors")
+    _check(problems, spec.camera is None or math.isclose(spec.task_rotation_deg, e.meta["task_rotation_deg"]),
+           f"{SPEC_FILE}: task rotation differs from metadata")
+
+
+#: Each bundle file's check, in the order problems are listed: (file or folder, check, read errors are caught
+#: and reported as "cannot be read" by check_bundle).
+_FILE_CHECKS = ((FRAMES_DIR, _check_frames, False), (VIDEO_FILE, _check_video, False),
+                (MASKS_FILE, _check_masks, False), (DEPTH_FILE, _check_depth, False),
+                (TRAJECTORIES_FILE, _check_trajectories, True), (CONTACTS_FILE, _check_contacts, True),
+                (TRACKS_FILE, _check_tracks, False), (PROMPT_FILE, _check_prompt, True),
+                (SPEC_FILE, _check_spec, False))
+
+
 def check_bundle(path: str | Path, check_video: bool = True, deep: bool = True) -> list[str]:
     """Problems with the bundle at ``path`` (empty when valid): every file present and readable, documented
     shapes and dtypes, consistent T (frames), N (actors), H and W everywhere.
@@ -586,130 +728,27 @@ def check_bundle(path: str | Path, check_video: bool = True, deep: bool = True) 
             _check(problems, (path / name).is_file(), f"{name}: missing")
     if not (path / METADATA_FILE).is_file():
         return problems
-    try:
-        meta = _read_json_dict(path / METADATA_FILE)
-        T = int(meta["frames"])
-        W, H = (int(v) for v in meta["resolution"])
-        names = list(meta["actor_names"])
-        roles = list(meta["roles"])
-        K = np.array(meta["camera"]["intrinsics_K"], float)
-        c2w = np.array(meta["camera"]["camera_to_world_blender"], float)
-    except READ_ERRORS as exc:
-        return problems + [f"{METADATA_FILE}: unreadable or missing a required field ({type(exc).__name__}: {exc})"]
-    N = len(names)
-    _check(problems, K.shape == (3, 3) and c2w.shape == (4, 4), f"{METADATA_FILE}: camera matrices have wrong shapes")
-    _check(problems, len(roles) == N and set(roles) <= {"active", "passive"},
-           f"{METADATA_FILE}: roles {roles} do not match {N} actors with roles active/passive")
-    _check(problems, meta.get("active_indices") == [k for k, r in enumerate(roles) if r == "active"],
-           f"{METADATA_FILE}: active_indices disagree with roles")
-
-    frame_files = sorted((path / FRAMES_DIR).glob("*.png")) if (path / FRAMES_DIR).is_dir() else []
-    if _check(problems, [f.name for f in frame_files] == [frame_name(k) for k in range(T)],
-              f"{FRAMES_DIR}/: expected {T} frames 00000.png..{frame_name(T - 1)}, found {len(frame_files)}"):
-        from PIL import Image, UnidentifiedImageError
-
-        for f in (frame_files[0], frame_files[-1]):
-            try:
-                with Image.open(f) as im:
-                    _check(problems, im.size == (W, H) and im.mode == "RGB",
-                           f"{FRAMES_DIR}/{f.name}: {im.mode} {im.size[0]}x{im.size[1]}, expected RGB {W}x{H}")
-            except (OSError, UnidentifiedImageError) as exc:
-                problems.append(f"{FRAMES_DIR}/{f.name}: cannot be read ({exc})")
-
-    if check_video and (path / VIDEO_FILE).is_file():
+    expected = _check_metadata(path, problems)
+    if expected is None:
+        return problems
+    for name, check, catch in _FILE_CHECKS:
+        if name == VIDEO_FILE and not check_video:
+            continue
+        if name != FRAMES_DIR and not (path / name).is_file():
+            continue
+        if not catch:
+            check(path, expected, problems, deep)
+            continue
         try:
-            info = probe_video(path / VIDEO_FILE)
-            _check(problems, (info.width, info.height) == (W, H) and len(info.times_s) == T,
-                   f"{VIDEO_FILE}: {len(info.times_s)} frames of {info.width}x{info.height}, expected {T} of {W}x{H}")
-            _check(problems, info.codec == "h264", f"{VIDEO_FILE}: codec {info.codec}, expected h264")
-        except VideoError as exc:
-            problems.append(f"{VIDEO_FILE}: {exc.reason}")
-
-    masks = _check_npz(path / MASKS_FILE, problems) if (path / MASKS_FILE).is_file() else None
-    if masks is not None:
-        if _check_array(problems, MASKS_FILE, masks, "masks", (T, N, H, W), "b") is not None and deep:
-            _check_load(problems, MASKS_FILE, masks, "masks")
-        for key, want in (("names", names), ("roles", roles)):
-            if key in masks.keys:
-                got = _check_load(problems, MASKS_FILE, masks, key)
-                if got is not None:
-                    _check(problems, [str(s) for s in got] == want, f"{MASKS_FILE}: {key} differ from metadata")
-            else:
-                problems.append(f"{MASKS_FILE}: missing array '{key}'")
-        masks.close()
-    depth = _check_npz(path / DEPTH_FILE, problems) if (path / DEPTH_FILE).is_file() else None
-    if depth is not None:
-        if _check_array(problems, DEPTH_FILE, depth, "depth", (T, H, W), "f") is not None:
-            dtype = depth.header("depth")[1]
-            _check(problems, dtype == np.float32, f"{DEPTH_FILE}: depth is {dtype}, expected float32")
-            d = _check_load(problems, DEPTH_FILE, depth, "depth") if deep else None
-            if d is not None:
-                _check(problems, not np.isnan(d).any() and bool((d > 0).all()),
-                       f"{DEPTH_FILE}: depth must be positive (inf for no surface) and never NaN")
-        depth.close()
-    if (path / TRAJECTORIES_FILE).is_file():
-        try:
-            traj = Trajectory.load(path / TRAJECTORIES_FILE)
-            _check(problems, list(traj.names) == names and list(traj.roles) == roles,
-                   f"{TRAJECTORIES_FILE}: actors {list(traj.names)} differ from metadata {names}")
-            _check(problems, traj.positions_m.shape == (N, T, 3) and traj.quat_wxyz.shape == (N, T, 4),
-                   f"{TRAJECTORIES_FILE}: positions {traj.positions_m.shape} / quaternions {traj.quat_wxyz.shape}, "
-                   f"expected ({N},{T},3) / ({N},{T},4)")
-            _check(problems, bool(np.isfinite(traj.positions_m).all() and np.isfinite(traj.quat_wxyz).all()),
-                   f"{TRAJECTORIES_FILE}: non-finite poses")
+            check(path, expected, problems, deep)
         except READ_ERRORS as exc:
-            problems.append(f"{TRAJECTORIES_FILE}: cannot be read ({type(exc).__name__}: {exc})")
-    if (path / CONTACTS_FILE).is_file():
-        try:
-            contacts = load_contacts(path / CONTACTS_FILE)
-            bad = [c for c in contacts if not (0 <= c.frame < T) or c.a not in names or len(c.points_m) > 5
-                   or len(c.points_m) != len(c.normals)]
-            _check(problems, not bad, f"{CONTACTS_FILE}: {len(bad)} contacts with a frame outside [0, {T}), an "
-                                      "unknown first body, or mismatched points and normals")
-        except READ_ERRORS as exc:
-            problems.append(f"{CONTACTS_FILE}: cannot be read ({type(exc).__name__}: {exc})")
-    tracks = _check_npz(path / TRACKS_FILE, problems) if (path / TRACKS_FILE).is_file() else None
-    if tracks is not None:
-        tr = _check_array(problems, TRACKS_FILE, tracks, "tracks", (None, T, 2), "f")
-        P = tr[0] if tr is not None and len(tr) == 3 else None
-        for key, shape, kinds in (("tracks", None, None), ("visibility", (P, T), "b"),
-                                  ("query_pixels", (P, 2), ("i", "u")), ("points_body_m", (P, 3), "f")):
-            if shape is None or _check_array(problems, TRACKS_FILE, tracks, key, shape, kinds) is not None:
-                if key in tracks.keys:
-                    _check_load(problems, TRACKS_FILE, tracks, key)  # small: read to find damaged data
-        idx = per = None
-        if _check_array(problems, TRACKS_FILE, tracks, "actor_index", (P,), ("i", "u")) is not None:
-            idx = _check_load(problems, TRACKS_FILE, tracks, "actor_index")
-        if _check_array(problems, TRACKS_FILE, tracks, "points_per_actor", (N,), ("i", "u")) is not None:
-            per = _check_load(problems, TRACKS_FILE, tracks, "points_per_actor")
-        if idx is not None and idx.ndim == 1 and len(idx):
-            _check(problems, bool(((idx >= 0) & (idx < N)).all()) and all(roles[i] == "active" for i in idx),
-                   f"{TRACKS_FILE}: actor_index must point at active actors in [0, {N})")
-        if per is not None and P is not None:
-            _check(problems, int(per.sum()) == P, f"{TRACKS_FILE}: points_per_actor sums to {per.sum()}, not {P}")
-        tracks.close()
-    if (path / PROMPT_FILE).is_file():
-        try:
-            prompt = (path / PROMPT_FILE).read_text().strip()
-            _check(problems, bool(prompt) and prompt == meta.get("prompt"),
-                   f"{PROMPT_FILE}: empty or differs from metadata")
-        except READ_ERRORS as exc:
-            problems.append(f"{PROMPT_FILE}: cannot be read ({type(exc).__name__}: {exc})")
-    if (path / SPEC_FILE).is_file():
-        try:
-            spec = SceneSpec.from_json((path / SPEC_FILE).read_text())
-            _check(problems, spec.camera is not None and [b.name for b in spec.bodies] == names,
-                   f"{SPEC_FILE}: no camera, or bodies differ from metadata actors")
-            _check(problems, spec.camera is None or math.isclose(spec.task_rotation_deg, meta["task_rotation_deg"]),
-                   f"{SPEC_FILE}: task rotation differs from metadata")
-        except READ_ERRORS as exc:
-            problems.append(f"{SPEC_FILE}: not a valid SceneSpec ({exc})")
+            problems.append(f"{name}: cannot be read ({type(exc).__name__}: {exc})")
     return problems
 
 
 __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_FILE", "DEPTH_FILE",
            "TRAJECTORIES_FILE", "CONTACTS_FILE", "TRACKS_FILE", "METADATA_FILE", "PROMPT_FILE", "SPEC_FILE",
            "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
-           "slice_trajectory", "camera_metadata", "make_metadata", "prepare_tmp", "commit", "Sample",
+           "slice_trajectory", "camera_metadata", "make_metadata", "Sample",
            "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "refuse_imported", "READ_ERRORS",
            "read_bundle_file", "damaged_error", "repair_hint", "is_imported"]

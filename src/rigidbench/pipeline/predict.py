@@ -58,10 +58,9 @@ from ..driver import ItemResult, Selection, Stage, StageReport, StageWorker, dig
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..evaluation.cache import write_json
-from ..jsonio import write_json as write_json_atomic
+from ..jsonio import read_json, write_json as write_json_atomic
 from ..evaluation.provenance import versions
-from ..folders import (FRAMES_DIR, GENERATION_FILE, RECORDS_DIR, SETTINGS_FILE,  # noqa: F401 (re-exported)
-                       VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name, state_path)
+from ..folders import FRAMES_DIR, VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name, state_path
 from ..groundtruth.bundle import Sample, bundle_dirs, read_bundle_file, refuse_imported
 from ..predictors import (SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo, example_seed,
                           model_inputs, predictor_info)
@@ -152,16 +151,6 @@ def write_example_record(out_dir: Path, sample_id: str, digest: str, entry: dict
                       {"id": sample_id, "settings": digest, "entry": entry}, durable=True)
 
 
-def _read_json(path: Path, what: str):
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError) as exc:
-        log.warning("%s: unreadable (%s); %s", path, type(exc).__name__, what)
-        return None
-
-
 class GenerationLog:
     """generation.json: the run's model and parameters, and one record per example (thread-safe).
 
@@ -175,7 +164,7 @@ class GenerationLog:
         self.records_dir = PredictionsFolder(self.out_dir).records_dir
         self.digest = settings_digest({k: header[k] for k in ("predictor", "settings")})
         self.lock = threading.Lock()
-        previous = _read_json(self.path, "it is rebuilt from the per-example records") or {}
+        previous = read_json(self.path, "it is rebuilt from the per-example records") or {}
         if not isinstance(previous, dict):
             previous = {}
         same = {k: previous.get(k) for k in ("predictor", "settings")} == {k: header[k] for k in ("predictor", "settings")}
@@ -209,7 +198,7 @@ class GenerationLog:
         if not self.records_dir.is_dir():
             return
         for path in sorted(self.records_dir.glob("*.json")):
-            doc = _read_json(path, "ignored")
+            doc = read_json(path, "ignored")
             if not isinstance(doc, dict) or not isinstance(doc.get("entry"), dict) or not isinstance(doc.get("id"), str):
                 continue
             if doc.get("settings") != self.digest:
@@ -301,7 +290,7 @@ class PredictStage(Stage):
         is there. Its result: its record, where there is one."""
         if self.previous != self.settings or not self.intact(item_id):
             return None
-        doc = _read_json(PredictionsFolder(self.out_dir).record(item_id), "ignored")
+        doc = read_json(PredictionsFolder(self.out_dir).record(item_id), "ignored")
         if isinstance(doc, dict) and doc.get("settings") == self.records and isinstance(doc.get("entry"), dict):
             return doc["entry"]
         return {"status": "succeeded"}
@@ -496,7 +485,7 @@ class PredictWorker(StageWorker):
         if pred.state is not None:
             outputs.insert(0, PredictionsFolder(staging).state(item_id).name)
         write_example_record(staging, item_id, self.records, entry)
-        outputs.append(f"{RECORDS_DIR}/{item_id}.json")
+        outputs.append(PredictionsFolder(staging).record(item_id).relative_to(staging).as_posix())
         self._remove_superseded(item_id, video.suffix, pred.state is not None)
         return ItemResult(outputs=outputs, result=entry)
 

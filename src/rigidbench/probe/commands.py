@@ -4,7 +4,6 @@ appendix E; docs/probing.md). Light: torch and the models are imported only when
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from ..context import RunContext
 from ..argtypes import selected_ids

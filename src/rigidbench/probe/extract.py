@@ -37,7 +37,7 @@ from ..errors import UserError
 from ..executors import Executor, Shard
 from ..folders import CONTACTS_FILE, MASKS_FILE, METADATA_FILE, TRAJECTORIES_FILE
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
-from ..jsonio import write_json
+from ..jsonio import read_json, write_json
 from ..perception.device import resolve_device
 from ..predictors.wan import detect_checkpoint, fingerprint
 from ..train.cache import LatentCache, bundle_fingerprint, index_lock
@@ -191,12 +191,7 @@ class ExtractStage(Stage):
         splits (kept; new clips join the training split) and the failures."""
         sdir = stage_dir(self.out, STAGE)
         with index_lock(sdir):
-            previous = {}
-            if (self.out / MANIFEST).is_file():
-                try:
-                    previous = json.loads((self.out / MANIFEST).read_text())
-                except ValueError:
-                    previous = {}
+            previous = read_json(self.out / MANIFEST, "rebuilt") or {}
             clips, empty, failed, facts, other = {}, [], {}, {}, []
             for path in sorted(sdir.glob("*.json")):
                 entry = read_ledger(self.out, STAGE, path.stem)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import sys
-from pathlib import Path
 
 from ..context import RunContext
 from ..argtypes import selected_ids

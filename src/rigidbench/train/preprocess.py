@@ -52,7 +52,7 @@ from ..errors import BundleError, ConfigError, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard
 from ..folders import FRAMES_DIR, METADATA_FILE, PROMPT_FILE, frame_name
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
-from ..jsonio import write_json
+from ..jsonio import read_json, write_json
 from ..perception.device import resolve_device
 from ..video import resize_frames
 from . import models
@@ -305,12 +305,7 @@ class PreprocessStage(Stage):
                         examples[item_id] = {"shard": result["latent"], **result["record"]}
                         prompts.update(result["prompts"])
                         shape, dim = result["latent_shape"] or shape, result["text_dim"] or dim
-            previous = {}
-            if (self.out / MANIFEST).is_file():
-                try:
-                    previous = json.loads((self.out / MANIFEST).read_text())
-                except ValueError:
-                    previous = {}
+            previous = read_json(self.out / MANIFEST, "rebuilt") or {}
             manifest = {**self.settings, "source": {**self.settings["source"], "data": str(self.split_dir.resolve())},
                         "layout": "one file per clip (latents/) and per prompt (text/)",
                         "examples": dict(sorted(examples.items())), "prompts": dict(sorted(prompts.items())),

@@ -188,6 +188,44 @@ def _check_cache(cache: LatentCache, cfg: TrainConfig, model) -> None:
                           f"{cache.text_dim}, but the transformer takes {channels} and {text_dim}")
 
 
+def _recipe_facts(cfg: TrainConfig, per_step: int) -> dict:
+    """What run.json records of the configuration's recipe."""
+    return {"mode": cfg.mode, "model": cfg.model, "init": cfg.init, "examples_per_update": per_step,
+            "paper_examples_per_update": cfg.effective_batch, "master_weights": cfg.master_weights,
+            "recipe": {"text": {"prompt": cfg.text_prompt, "padding": cfg.text_padding},
+                       "objective": {"clean_slot_timestep": cfg.objective_clean_slot_timestep,
+                                     "draws": cfg.objective_draws, "dtype": cfg.objective_dtype},
+                       "schedule_first_step": cfg.schedule_first_step}}
+
+
+def _accumulate(model, cache: LatentCache, objective: FlowMatchingObjective, order: DataOrder, cfg: TrainConfig,
+                info: DistInfo, step: int, first: int, use_bf16: bool, input_dtype) -> tuple[list[float], list]:
+    """The gradients of one update: ``cfg.grad_accum`` micro-batches of this rank's examples, starting at
+    example ``first`` of the data order (gradients synchronised on the last one only). Returns each
+    micro-batch's loss and timestep."""
+    losses, timesteps = [], []
+    for micro in range(cfg.grad_accum):
+        last = micro == cfg.grad_accum - 1
+        start = first + micro * info.world_size * cfg.batch_size + info.rank * cfg.batch_size
+        indices = [order(start + j) for j in range(cfg.batch_size)]
+        latents, text = cache.batch(indices, device=info.device, prompt=cfg.text_prompt, padding=cfg.text_padding)
+        g = torch.Generator().manual_seed(draw_seed(cfg, step, micro, info.rank))
+        index, noise = objective.draw(g, latents.shape)
+        batch = objective.prepare(latents, noise.to(info.device), index)
+        if hasattr(model, "set_requires_gradient_sync"):  # FSDP2
+            model.set_requires_gradient_sync(last)
+        sync = model.no_sync() if (hasattr(model, "no_sync") and not last) else contextlib.nullcontext()
+        with sync:
+            with torch.autocast(info.device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                pred = transformer_prediction(model, batch, text if input_dtype is None else text.to(input_dtype),
+                                              input_dtype=input_dtype)
+            loss = objective.loss(pred, batch)
+            (loss / cfg.grad_accum).backward()
+        losses.append(float(loss.detach()))
+        timesteps.append(batch.timestep)
+    return losses, timesteps
+
+
 def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, progress: bool,
            on_step, save_final: bool) -> TrainSummary:
     from tqdm import tqdm
@@ -228,15 +266,8 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
 
     per_step = info.world_size * cfg.batch_size * cfg.grad_accum
     facts = {"device": str(info.device), "world_size": info.world_size, "precision": precision,
-             "optimizer": optimizer_impl, "wrapper": wrapper, "mode": cfg.mode, "model": cfg.model,
-             "init": cfg.init, "examples_per_update": per_step, "paper_examples_per_update": cfg.effective_batch,
-             "master_weights": cfg.master_weights,
-             "recipe": {"text": {"prompt": cfg.text_prompt, "padding": cfg.text_padding},
-                        "objective": {"clean_slot_timestep": cfg.objective_clean_slot_timestep,
-                                      "draws": cfg.objective_draws, "dtype": cfg.objective_dtype},
-                        "schedule_first_step": cfg.schedule_first_step},
-             "trainable_parameters": n_trainable,
-             "cache": str(cache_dir.resolve()), "cache_examples": len(cache)}
+             "optimizer": optimizer_impl, "wrapper": wrapper, **_recipe_facts(cfg, per_step),
+             "trainable_parameters": n_trainable, "cache": str(cache_dir.resolve()), "cache_examples": len(cache)}
     if info.is_main:
         if per_step != cfg.effective_batch:
             log.warning("%d examples per update on %d process(es); the paper's configuration has %d "
@@ -257,28 +288,9 @@ def _train(cfg: TrainConfig, cache_dir: Path, run_dir: Path, info: DistInfo, pro
             if info.device.type == "cuda":
                 torch.cuda.synchronize(info.device)
             t0 = time.perf_counter()
-            losses, timesteps = [], []
-            for micro in range(cfg.grad_accum):
-                last = micro == cfg.grad_accum - 1
-                base = seen + (step - start_step) * per_step + micro * info.world_size * cfg.batch_size
-                first = base + info.rank * cfg.batch_size
-                indices = [order(first + j) for j in range(cfg.batch_size)]
-                latents, text = cache.batch(indices, device=info.device, prompt=cfg.text_prompt,
-                                            padding=cfg.text_padding)
-                g = torch.Generator().manual_seed(draw_seed(cfg, step, micro, info.rank))
-                index, noise = objective.draw(g, latents.shape)
-                batch = objective.prepare(latents, noise.to(info.device), index)
-                if hasattr(model, "set_requires_gradient_sync"):  # FSDP2
-                    model.set_requires_gradient_sync(last)
-                sync = model.no_sync() if (hasattr(model, "no_sync") and not last) else contextlib.nullcontext()
-                with sync:
-                    with torch.autocast(info.device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                        pred = transformer_prediction(model, batch, text if input_dtype is None else
-                                                      text.to(input_dtype), input_dtype=input_dtype)
-                    loss = objective.loss(pred, batch)
-                    (loss / cfg.grad_accum).backward()
-                losses.append(float(loss.detach()))
-                timesteps.append(batch.timestep)
+            first = seen + (step - start_step) * per_step
+            losses, timesteps = _accumulate(model, cache, objective, order, cfg, info, step, first, use_bf16,
+                                            input_dtype)
             grad_norm = _grad_norm(params, cfg.optimizer_grad_clip)
             lr = scheduler.get_last_lr()[0]
             optimizer.step()
