@@ -143,9 +143,10 @@ class Stage(ABC):
         """Whether the committed output of ``item_id`` is still there and sound (checked before skipping)."""
         return True
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> dict | str | None:
         """An output made before ledgers existed that counts as made with ``key``: its result dict (the
-        ledger entry is then written for it), or None."""
+        ledger entry is then written for it); or why an earlier output there does not count (it is made
+        again, and the report says why); or None (nothing there)."""
         return None
 
     def prepare(self, todo: list[str]) -> None:
@@ -353,7 +354,9 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
         why = None
         if entry is None:
             adopted = stage.adopt(item_id, payload, key)
-            if adopted is not None:
+            if isinstance(adopted, str):  # an earlier output that does not count, and why
+                why = adopted
+            elif adopted is not None:
                 if write:
                     write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted, adopted=True)
                 report.reused.append(item_id)

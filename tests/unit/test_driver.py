@@ -149,3 +149,25 @@ def test_item_runner_writes_a_durable_ledger_entry(tmp_path):
     assert entry["status"] == "succeeded" and entry["result"] == {"value": 10}
     on_disk = json.loads(ledger_path(tmp_path, "toy", "a").read_text())
     assert on_disk["key"] == "k1" and on_disk["id"] == "a" and oct(os.stat(ledger_path(tmp_path, "toy", "a")).st_mode)[-3:] == "644"
+
+
+class LegacyToyStage(ToyStage):
+    """Outputs made before ledgers: ``out/<id>.txt`` with the right value counts, another value does not."""
+
+    def adopt(self, item_id, payload, key):
+        path = self.root / "out" / f"{item_id}.txt"
+        if not path.exists():
+            return None
+        held = path.read_text()
+        return {"value": int(held)} if held == str(payload["n"] * self.factor) else f"the old output holds {held}"
+
+
+def test_outputs_from_before_ledgers_are_adopted_or_redone_with_the_reason(tmp_path):
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "a.txt").write_text("2")  # right for n=1, factor 2
+    (tmp_path / "out" / "b.txt").write_text("99")  # wrong
+    report = run_stage(LegacyToyStage(tmp_path, PAYLOADS), progress=False)
+    assert report.reused == ["a"] and report.results["a"] == {"value": 2}
+    assert report.ran == ["b", "c", "d"] and report.redone == {"b": "the old output holds 99"}
+    assert read_ledger(tmp_path, "toy", "a")["adopted"] is True
+    assert outputs(tmp_path)["out/b.txt"] == "4"

@@ -27,7 +27,6 @@ def _import_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("src", type=Path, help="the archive (.tar.gz), or the folder it was extracted into")
     _published_arguments(p)
     p.add_argument("--dataset", help="which published set this is, for the record (default: the newest described)")
-    p.add_argument("--ids", nargs="+", metavar="ID", help="import only these sample ids")
 
 
 def _manifest_arguments(p: argparse.ArgumentParser) -> None:
@@ -113,7 +112,7 @@ COMMANDS = (
             "rigidbench.datasets.commands:cmd_download", _download_arguments),
     Command("import", "import a published evaluation set you downloaded by hand (the .tar.gz, its parts' folder, "
                       "or the extracted folder) into DATA/eval",
-            "rigidbench.datasets.commands:cmd_import", _import_arguments),
+            "rigidbench.datasets.commands:cmd_import", _import_arguments, groups=("selection",)),
     Command("manifest", "write the fixed train (5,000) or eval (100) manifest as JSON Lines",
             "rigidbench.commands.data:cmd_manifest", _manifest_arguments),
     Command("simulate", "simulate examples with Bullet (no rendering): scene_spec.json, trajectories.npz, "

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from ..argtypes import selected_ids
 from ..benchmark import write_inputs
 from ..errors import UserError
 from .describe import load_dataset
@@ -91,7 +92,7 @@ def cmd_import(args, ctx) -> int:
             safe_extract(parts, dest, archive=PART_NAME.sub("", parts[0].name))
         src = dest
     summary = import_published(src, args.data, dataset=_identity(desc, False), registry=ctx.registry,
-                               config_dirs=ctx.config_dirs, ids=args.ids)
+                               config_dirs=ctx.config_dirs, ids=selected_ids(args), limit=args.limit)
     return _finish(summary, Path(args.data))
 
 

@@ -466,12 +466,13 @@ class ImportStage(Stage):
 
 
 def import_published(src: str | Path, data: str | Path, *, dataset: dict | None = None, registry=None,
-                     ids: list[str] | None = None, progress: bool = True,
+                     ids: list[str] | None = None, limit: int | None = None, progress: bool = True,
                      on_sample: Callable[[str, str], None] | None = None, config_dirs=()) -> ImportSummary:
     """Convert every published sample under ``src`` into ``data/eval/<id>/`` on the stage driver; ``dataset``
     is the identity recorded in each bundle's ``source`` (``DatasetDescription.identity()``). Resumable: a
     sample whose source files, conversion and identity are unchanged is skipped; per-sample failures are
-    collected in the summary, never raised. ``config_dirs``: what a worker elsewhere rebuilds ``registry``
+    collected in the summary, never raised. ``ids``, ``limit``: which samples (the driver's selection).
+    ``config_dirs``: what a worker elsewhere rebuilds ``registry``
     from (this process uses ``registry`` itself)."""
     root = find_published_root(Path(src))
     samples = published_samples(root)
@@ -482,7 +483,7 @@ def import_published(src: str | Path, data: str | Path, *, dataset: dict | None 
     for stale in split_dir.glob(".*.tmp"):  # an interrupted import of an earlier version
         shutil.rmtree(stale, ignore_errors=True)
     stage = ImportStage(root, split_dir, samples, dataset, registry, config_dirs)
-    report = run_stage(stage, Selection.of(ids), progress=progress,
+    report = run_stage(stage, Selection.of(ids, limit), progress=progress,
                        on_result=None if on_sample is None else
                        lambda sample_id, entry: on_sample(sample_id, "done" if entry.get("status") == "succeeded"
                                                           else "failed"))

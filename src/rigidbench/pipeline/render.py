@@ -169,7 +169,6 @@ class RenderStage(Stage):
             raise ValueError(f"render stage of split {split} was given rows of split(s) {', '.join(strays)}")
         self.device, self.threads, self.config_dirs = device, threads, [str(d) for d in config_dirs]
         self.resources = Resources(num_cpus=threads or 1)
-        self.rerendered: dict[str, str] = {}  # id -> why a bundle made before ledgers existed is not kept
 
     @property
     def root(self) -> Path:
@@ -200,7 +199,7 @@ class RenderStage(Stage):
         path = self.root / item_id
         return path.is_dir() and not B.check_bundle(path, deep=False)
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> dict | str | None:
         """A bundle rendered before ledgers existed counts when complete and rendered at this preset (the old
         rule); otherwise it is rendered again, with a warning saying why."""
         path = self.root / item_id
@@ -213,8 +212,7 @@ class RenderStage(Stage):
         why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
                f"was rendered at the '{rendered_at}' preset, not '{self.quality}'")
         log.warning("example %s: the bundle in %s %s; rendering it again", item_id, path, why)
-        self.rerendered[item_id] = f"the bundle {why}"
-        return None
+        return f"the bundle {why}"
 
     def refuse_imported(self, ids: Sequence[str]) -> None:
         """UserError when a bundle of ``ids`` was imported from the published set (never rendered over)."""
@@ -229,11 +227,6 @@ class RenderStage(Stage):
             leftover = self.root / f".{sample_id}.tmp"
             if leftover.is_dir():
                 shutil.rmtree(leftover, ignore_errors=True)
-
-    def finish(self, report: StageReport) -> None:
-        for sample_id, why in self.rerendered.items():
-            if sample_id in report.selected:
-                report.redone.setdefault(sample_id, why)
 
 
 def render_threads(workers: int) -> int | None:
