@@ -33,7 +33,7 @@ import os
 import signal
 import sys
 from abc import ABC, abstractmethod
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -104,7 +104,8 @@ class Executor(ABC):
 
 @dataclass
 class LocalExecutor(Executor):
-    """One worker in this process; ``threads`` > 1 calls it from that many threads (it must be thread-safe)."""
+    """One worker in this process; ``threads`` > 1 calls it from that many threads (it must be thread-safe),
+    reporting each item as it finishes."""
 
     name: str = "local"
     threads: int = 1
@@ -125,8 +126,10 @@ class LocalExecutor(Executor):
                     if on_result:
                         on_result(item, record)
             else:
-                with ThreadPoolExecutor(max_workers=self.threads) as pool:
-                    for item, record in zip(items, pool.map(instance, items)):
+                with ThreadPoolExecutor(max_workers=self.threads) as pool:  # results as they finish
+                    futures = {pool.submit(instance, item): item for item in items}
+                    for future in as_completed(futures):
+                        item, record = futures[future], future.result()  # a worker's bug raises here
                         out.append((item, record))
                         if on_result:
                             on_result(item, record)
