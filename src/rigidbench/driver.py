@@ -111,6 +111,8 @@ class Stage(ABC):
     worker: ClassVar[str]  # "module:Class" of its StageWorker
     resources: Resources = Resources()
     unit: ClassVar[str] = "example"
+    #: what a worker's ``progress(done, total)`` counts (e.g. "frame"); None: no second progress bar
+    steps: ClassVar[str | None] = None
 
     @property
     @abstractmethod
@@ -418,7 +420,7 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
         if not progress:
             return
         if sub["bar"] is None:
-            sub["bar"] = tqdm(total=len(todo) * total, unit="step", desc=f"{stage.name} steps", position=1)
+            sub["bar"] = tqdm(total=len(todo) * total, unit=stage.steps, desc=f"{stage.name} {stage.steps}s", position=1)
         step = done - sub["done"].get(task["id"], 0)
         sub["done"][task["id"]] = done
         sub["bar"].update(step)
@@ -447,7 +449,7 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
             instance = stage.worker_instance() if isinstance(executor, LocalExecutor) else None
             runner = ItemRunner(job, instance) if isinstance(executor, LocalExecutor) else None
             executor.map(RUNNER, job, todo, stage.resources, on_result=collect, instance=runner,
-                         on_progress=on_progress)
+                         on_progress=on_progress if stage.steps else None)
         report.completed = True
     finally:
         bar.close()

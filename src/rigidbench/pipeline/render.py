@@ -157,6 +157,7 @@ class RenderStage(Stage):
 
     name = "render"
     worker = RENDER_WORKER
+    steps = "frame"  # passes and RGB, as the worker reports them
 
     def __init__(self, data_dir: str | Path, split: str, rows: Sequence[ManifestRow], registry: Registry,
                  quality: str = "paper", device: str = "auto", threads: int | None = None,
