@@ -187,6 +187,13 @@ def test_a_changed_input_of_one_example_redoes_only_that_example(split, tmp_path
     Image.fromarray(pixels).save(frame)
     assert run(split, out, counter).redone == {"00002": CHANGED}
     assert counter.calls == IDS + ["00001", "00002"]
+    # a failure mode reads the whole reference: a re-rendered bundle (same first frame and prompt) redoes it
+    meta_path = split / "00000" / "metadata.json"
+    meta = json.loads(meta_path.read_text())
+    meta["render_seconds"] = {"total": 123.0}
+    meta_path.write_text(json.dumps(meta))
+    assert run(split, out, counter).redone == {"00000": CHANGED}
+    assert counter.calls == IDS + ["00001", "00002", "00000"]
 
 
 def test_an_unreadable_example_fails_alone_and_runs_when_fixed(split, tmp_path):

@@ -60,7 +60,8 @@ from ..executors import Executor, LocalExecutor, Resources, Shard, failure_recor
 from ..evaluation.cache import write_json
 from ..jsonio import read_json, write_json as write_json_atomic
 from ..evaluation.provenance import versions
-from ..folders import FRAMES_DIR, VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name, state_path
+from ..folders import (FRAMES_DIR, METADATA_FILE, VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name,
+                       state_path)
 from ..groundtruth.bundle import Sample, bundle_dirs, read_bundle_file, refuse_imported
 from ..predictors import (SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo, example_seed,
                           model_inputs, predictor_info)
@@ -261,9 +262,15 @@ class PredictStage(Stage):
 
     def key(self, item_id: str, payload: Any) -> str:
         """The predictor's settings, the example's own seed (None for a predictor that takes none) and a hash
-        of its model inputs (``input_digest``)."""
+        of its model inputs (``input_digest``); for the failure modes, which read the whole reference bundle,
+        also its metadata (a re-rendered bundle's differs, if only in its render times)."""
+        bundle = Path(payload["bundle"])
         seed = example_seed(self.ctx.seed, item_id) if self.seeded else None
-        return digest({"settings": self.settings, "seed": seed, "inputs": input_digest(Path(payload["bundle"]))})
+        parts = {"settings": self.settings, "seed": seed, "inputs": input_digest(bundle)}
+        if self.info.kind == Kind.FAILURE_MODE:
+            parts["reference"] = read_bundle_file(bundle, METADATA_FILE,
+                                                  lambda path: hashlib.sha256(path.read_bytes()).hexdigest())
+        return digest(parts)
 
     def job(self) -> dict:
         info, ctx = self.info, self.ctx
