@@ -141,6 +141,17 @@ def test_the_render_key_is_the_spec_configuration_and_preset_not_the_device(reg,
     assert all(base[i] != k for i, k in keys(fewer).items()) and keys(kept) == base
     edited = keys(load_registry([edited_pomegranate]))
     assert edited[CHANGED] != base[CHANGED] and edited["00019"] == base["00019"]
+    # a user mesh is keyed by its content, not its path
+    mesh = tmp_path / "mesh" / "objects" / "pomegranate.obj"
+    mesh.parent.mkdir(parents=True)
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    entry = yaml.safe_load((PACKAGE_CONFIG_DIR / "objects" / "pomegranate.yaml").read_text())
+    (mesh.parent / "pomegranate.yaml").write_text(yaml.safe_dump({**entry, "mesh": "pomegranate.obj"}))
+    first = keys(load_registry([mesh.parent.parent]))
+    mesh.write_text("v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n")  # same path, new content
+    second = keys(load_registry([mesh.parent.parent]))
+    assert first[CHANGED] != base[CHANGED] and second[CHANGED] != first[CHANGED]
+    assert first["00019"] == second["00019"] == base["00019"]
 
 
 # -- render -----------------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@
 selected, which are already done, staging and the atomic commit, failures, progress and the report.
 An example's *key* is a digest of what its pixels and files are made from: the scene spec built from its
 manifest row, the configuration the renderer reads besides the spec (the objects' and ramp materials'
-entries, the scene's, the camera search settings), every setting of the render preset that changes the
+entries, the scene's, the camera search settings, the content of any user mesh they name), every setting of the render preset that changes the
 output, and ``RENDER_FORMAT``; not the device, the worker count or the threads. So a rerun skips the
 examples rendered with the same key (their bundle still passing ``check_bundle``), renders again exactly
 those whose key changed (another ``--quality``, an edited object in a config directory) and says why, and
@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
+import hashlib
 import json
 import logging
 import os
@@ -112,9 +114,31 @@ def looks(spec: SceneSpec, registry: Registry) -> dict:
     materials, its scene (room, style, support) and the camera search settings (the spec has no camera yet)."""
     assets = sorted({b.asset for b in spec.bodies if b.ramp is None})
     materials = sorted({b.ramp.material for b in spec.bodies if b.ramp is not None})
-    return {"objects": {a: plain(registry.object(a)) for a in assets},
+    objects = {a: registry.object(a) for a in assets}
+    scene = registry.scene(spec.scene)
+    meshes = {m: mesh_digest(m) for m in sorted({c.mesh_path for c in [*objects.values(), scene] if c.mesh_path})}
+    return {"objects": {a: plain(c) for a, c in objects.items()},
             "materials": {m: plain(registry.material(m)) for m in materials},
-            "scene": plain(registry.scene(spec.scene)), "camera": plain(registry.camera)}
+            "scene": plain(scene), "camera": plain(registry.camera), "meshes": meshes}
+
+
+@functools.lru_cache(maxsize=256)
+def _file_digest(path: str, size: int, mtime_ns: int) -> str:
+    digest_ = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest_.update(chunk)
+    return digest_.hexdigest()
+
+
+def mesh_digest(path: str) -> str:
+    """A user mesh file's content hash (read once per process while its size and time are unchanged), so an
+    edited mesh renders its examples again; SpecError when it cannot be read."""
+    try:
+        st = os.stat(path)
+        return _file_digest(path, st.st_size, st.st_mtime_ns)
+    except OSError as exc:
+        raise SpecError(f"mesh file {path}: cannot be read ({exc.strerror or exc})") from None
 
 
 def render_key(spec: SceneSpec, registry: Registry, preset: RenderPreset) -> str:
