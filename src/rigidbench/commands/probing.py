@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..probe.commands import INTERVENTION_TAUS, PAPER_TAUS
+from ..train.config import MODEL_SPECS
 from . import Command
 
 
@@ -14,7 +15,7 @@ def _extract_arguments(p) -> None:
     p.add_argument("--cache", type=Path, required=True, help="the cache `rigidbench preprocess` wrote")
     p.add_argument("--data", type=Path, required=True, help="the bundles the cache was made from (DIR/train)")
     p.add_argument("--out", type=Path, required=True, help="activation store (created; a rerun skips done clips)")
-    p.add_argument("--model", choices=("wan-2.2", "tiny"), help="default: the cache's model")
+    p.add_argument("--model", choices=tuple(MODEL_SPECS), help="default: the cache's model")
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
     p.add_argument("--taus", default=PAPER_TAUS, help=f"schedule fractions along the training schedule, 0.9 the "
                                                       f"least noisy (default {PAPER_TAUS})")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..argtypes import positive_int
-from ..train.config import MODEL_SPECS, NAMED_CONFIGS
+from ..train.config import MODEL_SPECS, NAMED_CONFIGS, RESIZES, VAE_DTYPES
 from . import Command
 
 
@@ -20,9 +20,9 @@ def _preprocess_arguments(p) -> None:
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
     p.add_argument("--shard-size", type=int, default=64,
                    help="ignored, kept so older scripts run: the cache now keeps one latent file per clip")
-    p.add_argument("--resize", choices=("bicubic", "lanczos"), default="bicubic",
+    p.add_argument("--resize", choices=RESIZES, default="bicubic",
                    help="frame resize filter: bicubic (PIL's default, the authors' release; default) or lanczos")
-    p.add_argument("--vae-dtype", choices=("auto", "bfloat16", "float32"), default="auto",
+    p.add_argument("--vae-dtype", choices=VAE_DTYPES, default="auto",
                    help="VAE precision: auto (bfloat16 on a GPU, as the release; float32 on the CPU)")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--ray-shards", type=positive_int, metavar="N",

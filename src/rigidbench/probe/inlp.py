@@ -36,17 +36,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..perception.device import resolve_device
+
 RIDGE = 0.05        # ridge coefficient per training row (the release's reg * N)
 MIN_R2 = 0.05       # stop when a new regressor's training R^2 falls below this
 MAX_ITER = 30
 RANK_TOL = 1e-6     # singular values above RANK_TOL x the largest count towards a row space
 TRAIN_FRACTION = 0.8
-
-
-def resolve_device(device=None) -> torch.device:
-    if device is None:
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def split_rows(n: int, train_fraction: float = TRAIN_FRACTION, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +146,7 @@ def inlp(x, y, ridge: float = RIDGE, min_r2: float = MIN_R2, max_iter: int = MAX
     """INLP basis of the target ``y`` (n, k) in the activations ``x`` (n, D); see the module docstring.
     ``keep_covariance`` also returns the training rows' covariance (for the PC control)."""
     t0 = time.perf_counter()
-    dev = resolve_device(device)
+    dev = torch.device(resolve_device(None if device is None else str(device)))
     n = len(x)
     y = torch.as_tensor(np.asarray(y, dtype=np.float64).reshape(n, -1))
     tr, ho = split_rows(n, train_fraction, seed)

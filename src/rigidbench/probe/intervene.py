@@ -58,7 +58,7 @@ from ..stats.bootstrap import bootstrap_ci
 from ..train.cache import LatentCache
 from ..train.objective import FlowMatchingObjective
 from . import model as wan
-from .inlp import (MAX_ITER, MIN_R2, RIDGE, inlp, random_orthonormal, removed_variance, resolve_device as inlp_device,
+from .inlp import (MAX_ITER, MIN_R2, RIDGE, inlp, random_orthonormal, removed_variance,
                    total_variance, variance_matched_pcs)
 from .store import ActivationStore, atomic_json, tau_name
 
@@ -178,7 +178,7 @@ class BasesWorker(StageWorker):
         super().__init__(job)
         self.store = ActivationStore(job["acts"])
         self.position = self.store.rows["position"].astype(np.float64)
-        self.device = inlp_device(job["device"])
+        self.device = torch.device(resolve_device(job["device"]))
         self.dtype = getattr(torch, job["inlp_dtype"])
 
     def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
@@ -322,7 +322,7 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
         raise UserError(f"clip split must be all or train, got {clip_split!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    inlp_dev = inlp_device(None if device is None else resolve_device(device))
+    inlp_dev = torch.device(resolve_device(device))
     inlp_dtype = str(inlp_dtype).replace("torch.", "")
     start = time.perf_counter()
 

@@ -29,6 +29,9 @@ PRECISIONS = ("bf16", "fp32")
 INITS = ("pretrained", "random")
 EXPORT_DTYPES = ("float32", "bfloat16", "float16")
 NAMED_CONFIGS = ("lora", "full", "tiny")
+#: preprocessing choices (``rigidbench preprocess --resize`` / ``--vae-dtype``; docs/finetuning.md)
+RESIZES = ("bicubic", "lanczos")
+VAE_DTYPES = ("auto", "bfloat16", "float32")
 #: the recipe options where our trainer and the authors' release differ (docs/finetuning.md); the first
 #: value of each is the release's behaviour
 TEXT_PROMPTS = ("task", "task+suffix")            # text.prompt: the task prompt alone | with the paper's suffix

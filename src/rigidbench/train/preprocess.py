@@ -58,15 +58,13 @@ from ..video import resize_frames
 from . import models
 from .cache import (CACHE_VERSION, MANIFEST, SETTINGS_KEYS, bundle_fingerprint, index_lock, latent_file,
                     prompt_key, read_manifest, text_file, text_file_info, write_latent_file, write_text_file)
-from .config import model_spec
+from .config import RESIZES, VAE_DTYPES, model_spec
 
 log = logging.getLogger(__name__)
 
 STAGE = "preprocess"
 PROMPT_FORMAT = ("two per example: 'prompt' = task prompt + the paper's suffix (rigidbench.benchmark.full_prompt), "
                  "'prompt_task' = the task prompt alone; UMT5 outputs at all text_len positions")
-RESIZES = ("bicubic", "lanczos")
-VAE_DTYPES = ("auto", "bfloat16", "float32")
 PROMPT_BATCH = 8
 LEGACY_MANIFEST = "legacy-manifest.json"  # an older cache's manifest, kept when the index replaces it
 
