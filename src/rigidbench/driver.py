@@ -225,7 +225,13 @@ def fresh_staging(root: str | Path, name: str, item_id: str) -> Path:
     path = staging_path(root, name, item_id)
     if path.exists() or path.is_symlink():
         shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
-    path.mkdir(parents=True)
+    for attempt in range(3):  # another run (a shard) may remove the empty staging folder between the two mkdirs
+        try:
+            path.mkdir(parents=True)
+            return path
+        except FileNotFoundError:
+            if attempt == 2:
+                raise
     return path
 
 
