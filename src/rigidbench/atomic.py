@@ -5,6 +5,7 @@ into place when complete, so a reader (or a rerun after a kill) never sees half 
   on a normal exit it is renamed onto ``path``, on an exception it is removed. ``write_text`` and
   ``write_bytes`` are the two common cases; ``jsonio.write_json`` is the JSON one.
 - ``atomic_dir(path)``: the same for a directory.
+- ``replace_path(src, dst)``: put a finished file or directory in place of whatever is at ``dst``.
 
 Temporaries are hidden siblings, ``.<name>.tmp<suffix>`` (``unique``: ``.<name>.<random>.tmp<suffix>``,
 for paths that several threads or processes may write at once; the last rename wins). A writer that
@@ -73,6 +74,25 @@ def write_bytes(path: str | Path, data: bytes, **options) -> Path:
     return Path(path)
 
 
+def replace_path(src: str | Path, dst: str | Path) -> None:
+    """Rename ``src`` (a complete file or directory) onto ``dst``, replacing whatever is there: a file in one
+    atomic rename; a directory whole (the old one is moved aside first and removed once the new one is in
+    place, so ``dst`` is never half of either). A file is fsynced first."""
+    src, dst = Path(src), Path(dst)
+    if src.is_file() and not src.is_symlink():
+        fsync_file(src)
+    if not (dst.exists() or dst.is_symlink()):
+        src.rename(dst)
+    elif dst.is_dir() and not dst.is_symlink():
+        old = dst.with_name(f".{dst.name}.old-{os.getpid()}")
+        shutil.rmtree(old, ignore_errors=True)
+        dst.rename(old)
+        src.rename(dst)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        src.replace(dst)
+
+
 @contextmanager
 def atomic_dir(path: str | Path, *, tmp: str | Path | None = None, unique: bool = False,
                replace: bool = False) -> Iterator[Path]:
@@ -90,11 +110,8 @@ def atomic_dir(path: str | Path, *, tmp: str | Path | None = None, unique: bool 
         tmp.mkdir(parents=True)
     try:
         yield tmp
-        if replace and path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            path.rename(old)
-            tmp.rename(path)
-            shutil.rmtree(old)
+        if replace:
+            replace_path(tmp, path)
         else:
             tmp.replace(path)
     except BaseException:

@@ -37,7 +37,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import shutil
 import time
 from abc import ABC, abstractmethod
@@ -45,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping, Sequence
 
-from .atomic import fsync_file
+from .atomic import replace_path
 from .errors import EXAMPLE_ERRORS, UserError
 from .executors import Executor, LocalExecutor, Resources, Shard
 from .jsonio import read_json, write_json
@@ -159,7 +158,7 @@ class Stage(ABC):
         says which), e.g. to write the run-level results."""
 
 
-class StageWorker:
+class StageWorker(ABC):
     """Produces one example's output per call. ``run`` writes the output under ``staging`` with the paths it
     will have under the stage's root and returns an ``ItemResult``; it raises RigidBenchError or OSError for
     a bad example (recorded as a failure) and anything else for a bug."""
@@ -167,8 +166,10 @@ class StageWorker:
     def __init__(self, job: dict):
         self.job = job
 
+    @abstractmethod
     def run(self, item_id: str, payload: Any, staging: Path, progress: Progress) -> "ItemResult":
-        raise NotImplementedError
+        """Make example ``item_id`` (``payload``: its item) into ``staging``; ``progress(done, total)`` reports
+        sub-steps."""
 
     def stop(self) -> None:
         """Start nothing new (a graceful interrupt); optional."""
@@ -228,7 +229,7 @@ def fresh_staging(root: str | Path, name: str, item_id: str) -> Path:
     for attempt in range(3):  # another run (a shard) may remove the empty staging folder between the two mkdirs
         try:
             path.mkdir(parents=True)
-            return path
+            break
         except FileNotFoundError:
             if attempt == 2:
                 raise
@@ -246,21 +247,7 @@ def commit(staging: Path, root: Path, outputs: Sequence[str]) -> None:
         if not (src.exists() or src.is_symlink()):
             raise FileNotFoundError(f"{src}: the worker listed this output but did not write it")
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if src.is_dir() and not src.is_symlink():
-            if dst.exists() or dst.is_symlink():
-                old = dst.with_name(f".{dst.name}.old-{os.getpid()}")
-                shutil.rmtree(old, ignore_errors=True)
-                dst.rename(old)
-                src.rename(dst)
-                shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
-            else:
-                src.rename(dst)
-        else:
-            if src.is_file():
-                fsync_file(src)
-            if dst.is_dir() and not dst.is_symlink():
-                shutil.rmtree(dst)
-            src.replace(dst)
+        replace_path(src, dst)
 
 
 class ItemRunner:
@@ -279,16 +266,14 @@ class ItemRunner:
         try:
             staging = fresh_staging(self.root, self.stage, item_id)
             made = self.worker.run(item_id, task.get("payload"), staging, progress or (lambda done, total: None))
-            if made.status == "succeeded":
-                commit(staging, self.root, made.outputs)
-                return write_ledger(self.root, self.stage, item_id, key, "succeeded", result=made.result,
-                                    seconds=time.time() - started)
-            entry = {"stage": self.stage, "id": item_id, "key": key, "status": made.status, "error": made.error,
-                     "result": made.result, "seconds": round(time.time() - started, 3)}
-            if made.status == "failed":
-                return write_ledger(self.root, self.stage, item_id, key, "failed", result=made.result,
+            if made.status in ("succeeded", "failed"):
+                if made.status == "succeeded":
+                    commit(staging, self.root, made.outputs)
+                return write_ledger(self.root, self.stage, item_id, key, made.status, result=made.result,
                                     error=made.error, seconds=time.time() - started)
-            return entry  # interrupted: nothing recorded, the example runs again
+            # interrupted: nothing recorded, the example runs again
+            return {"stage": self.stage, "id": item_id, "key": key, "status": made.status, "error": made.error,
+                    "result": made.result, "seconds": round(time.time() - started, 3)}
         except EXAMPLE_ERRORS as exc:
             error = str(exc) or type(exc).__name__
             return write_ledger(self.root, self.stage, item_id, key, "failed", error=error,
