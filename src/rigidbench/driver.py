@@ -65,6 +65,15 @@ def digest(*parts: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def file_digest(path: str | Path, chunk: int = 1 << 20) -> str:
+    """The sha256 hex digest of a file's content (read in chunks): the one content hash of keys."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
 # -- selection -----------------------------------------------------------------------------------------
 
 
@@ -456,5 +465,5 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
 
 
 __all__ = ["ItemResult", "ItemRunner", "LEDGER_DIR", "Selection", "Stage", "StageReport", "StageWorker", "commit",
-           "digest", "fresh_staging", "ledger_path", "plan", "read_ledger", "run_stage", "stage_dir",
+           "digest", "file_digest", "fresh_staging", "ledger_path", "plan", "read_ledger", "run_stage", "stage_dir",
            "staging_path", "write_ledger"]

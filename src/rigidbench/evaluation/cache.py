@@ -6,6 +6,7 @@ import hashlib
 import json
 from pathlib import Path
 
+from ..driver import file_digest as file_hash
 from ..folders import DEPTH_FILE, MASKS_FILE, METADATA_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE
 from ..jsonio import write_json as _write
 
@@ -18,14 +19,6 @@ REFERENCE_FILES = (METADATA_FILE, MASKS_FILE, DEPTH_FILE, TRACKS_FILE, TRAJECTOR
 #: metadata.json fields that record how a bundle was made, not what it holds: a re-render that changes
 #: only these (its timings, package versions) keeps every cached score.
 VOLATILE_METADATA = ("render_seconds", "software")
-
-
-def file_hash(path: Path, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def metadata_hash(path: Path) -> str:

@@ -54,7 +54,7 @@ from typing import Any
 from ..atomic import atomic_file
 from ..benchmark import NEGATIVE_PROMPT, full_prompt
 from ..context import RunContext
-from ..driver import ItemResult, Selection, Stage, StageReport, StageWorker, digest, plan, run_stage
+from ..driver import ItemResult, Selection, Stage, StageReport, StageWorker, digest, file_digest, plan, run_stage
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
 from ..evaluation.cache import write_json
@@ -124,8 +124,7 @@ def input_digest(bundle: Path) -> str:
     """A hash of what a video model is given for the example in ``bundle`` (``predictors.model_inputs``): the
     first frame (its file's bytes: nothing is decoded), the task prompt with the paper's suffix and the
     negative prompt. A BundleError when the bundle lacks them."""
-    frame = read_bundle_file(bundle, f"{FRAMES_DIR}/{frame_name(0)}",
-                             lambda path: hashlib.sha256(path.read_bytes()).hexdigest())
+    frame = read_bundle_file(bundle, f"{FRAMES_DIR}/{frame_name(0)}", file_digest)
     return digest(frame, full_prompt(Sample(bundle).prompt), NEGATIVE_PROMPT)
 
 
@@ -268,8 +267,7 @@ class PredictStage(Stage):
         seed = example_seed(self.ctx.seed, item_id) if self.seeded else None
         parts = {"settings": self.settings, "seed": seed, "inputs": input_digest(bundle)}
         if self.info.kind == Kind.FAILURE_MODE:
-            parts["reference"] = read_bundle_file(bundle, METADATA_FILE,
-                                                  lambda path: hashlib.sha256(path.read_bytes()).hexdigest())
+            parts["reference"] = read_bundle_file(bundle, METADATA_FILE, file_digest)
         return digest(parts)
 
     def job(self) -> dict:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import hashlib
 import json
 import logging
 import os
@@ -39,7 +38,8 @@ from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, registry as load_registry
 from ..argtypes import selected_ids, split_ids
 from ..context import RunContext
-from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, plan, run_stage
+from ..driver import (ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, file_digest, plan,
+                      run_stage)
 from ..errors import EXAMPLE_ERRORS, SpecError, UserError
 from ..executors import Executor, ProcessExecutor, RayExecutor, Resources
 from ..groundtruth import bundle as B
@@ -124,11 +124,7 @@ def looks(spec: SceneSpec, registry: Registry) -> dict:
 
 @functools.lru_cache(maxsize=256)
 def _file_digest(path: str, size: int, mtime_ns: int) -> str:
-    digest_ = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            digest_.update(chunk)
-    return digest_.hexdigest()
+    return file_digest(path)  # cached per (path, size, time)
 
 
 def mesh_digest(path: str) -> str:

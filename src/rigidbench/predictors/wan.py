@@ -42,13 +42,13 @@ before the first example.
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
 import json
 import logging
 from pathlib import Path
 from typing import Any
 
+from ..driver import file_digest
 from ..errors import RigidBenchError, UserError
 from .base import PredictContext
 from .local import LocalVideoModel, dtype_kwarg
@@ -136,11 +136,7 @@ def fingerprint(found: dict[str, Any]) -> dict[str, Any]:
             out[f.name] = _FINGERPRINTS[key]
             continue
         if stat.st_size <= HASH_LIMIT_BYTES:
-            digest = hashlib.sha256()
-            with f.open("rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    digest.update(block)
-            out[f.name] = {"sha256": digest.hexdigest(), "bytes": stat.st_size}
+            out[f.name] = {"sha256": file_digest(f), "bytes": stat.st_size}
         else:
             out[f.name] = {"bytes": stat.st_size, "mtime": int(stat.st_mtime)}
         _FINGERPRINTS[key] = out[f.name]
