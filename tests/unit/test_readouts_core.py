@@ -76,7 +76,7 @@ def test_bounce_without_contact_is_nan_with_a_reason():
 def test_fixed_curvature_line():
     t = np.arange(3) / FPS
     q = fit_fixed_curvature(t, 0.1 + 2.0 * t - 4.905 * t ** 2, 9.81)
-    assert (q.b0, q.b1) == pytest.approx((0.1, 2.0))
+    assert (q.c0, q.c1) == pytest.approx((0.1, 2.0)) and q.g_se == 0.0
 
 
 def _fall(tau):

@@ -128,32 +128,15 @@ def ballistic_window(t: np.ndarray, z: np.ndarray, tol_m: float = WINDOW_TOL_M) 
     return grow_window(np.asarray(t, np.float64), np.asarray(z, np.float64), start, 3, fit_parabola, tol_m)
 
 
-@dataclass(frozen=True)
-class Line:
-    """z(t) + g t^2/2 = b0 + b1 t for a known g: the flight with known gravity."""
-
-    b0: float
-    b1: float
-    g: float
-    rms: float
-    n: int
-
-    def __call__(self, t):
-        t = np.asarray(t, np.float64)
-        return self.b0 + self.b1 * t - 0.5 * self.g * t * t
-
-    def velocity(self, t):
-        return self.b1 - self.g * np.asarray(t, np.float64)
-
-
-def fit_fixed_curvature(t: np.ndarray, z: np.ndarray, g: float) -> Line:
+def fit_fixed_curvature(t: np.ndarray, z: np.ndarray, g: float) -> Parabola:
+    """The flight with known gravity ``g``: least squares of z + g t^2/2 = c0 + c1 t (``g_se`` 0: not fitted)."""
     t, z = np.asarray(t, np.float64), np.asarray(z, np.float64)
     y = z + 0.5 * g * t * t
     if t.size == 1:
         raise ValueError("a flight with known gravity needs 2 samples")
     b1, b0 = np.polyfit(t, y, 1)
     resid = y - (b0 + b1 * t)
-    return Line(float(b0), float(b1), float(g), float(np.sqrt(np.mean(resid ** 2))), int(t.size))
+    return Parabola(float(b0), float(b1), float(g), 0.0, float(np.sqrt(np.mean(resid ** 2))), int(t.size))
 
 
 @dataclass(frozen=True)
@@ -190,9 +173,9 @@ def bounce_coefficient(t: np.ndarray, z: np.ndarray, tol_m: float = WINDOW_TOL_M
         return Bounce(float("nan"), frames_before=pre.n, reason="fewer than 2 frames after the first contact")
     q = fit_fixed_curvature(t[post.first:post.last + 1], z[post.first:post.last + 1], p.g)
     # p(t) - q(t) is linear (same curvature): they meet at t_c
-    slope = p.c1 - q.b1
+    slope = p.c1 - q.c1
     t_lo, t_hi = t[pre.last], t[first_after]
-    t_c = (q.b0 - p.c0) / slope if slope != 0 else 0.5 * (t_lo + t_hi)
+    t_c = (q.c0 - p.c0) / slope if slope != 0 else 0.5 * (t_lo + t_hi)
     t_c = float(min(max(t_c, t_lo), t_hi))
     v_before, v_after = float(p.velocity(t_c)), float(q.velocity(t_c))
     if not v_before < 0:
