@@ -34,7 +34,8 @@ from rigidbench.predictors.replicate import ReplicateClient  # noqa: E402
 from rigidbench.video import probe_video  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
-from replicate_server import TOKEN, StandInReplicate, make_split, tiny_mp4  # noqa: E402
+from replicate_server import TOKEN, make_split  # noqa: E402
+from replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
 
 MODEL = "veo-3.1"
 FAST_CLIENT = {"request_timeout_s": 5, "poll_interval_s": 0.01, "poll_max_interval_s": 0.02, "max_retries": 3,
@@ -52,19 +53,6 @@ replicate.ReplicateClient.create = create
 from rigidbench.cli import main
 sys.exit(main(sys.argv[1:]))
 """
-
-
-@pytest.fixture(scope="module")
-def video(tmp_path_factory):
-    return tiny_mp4(tmp_path_factory.mktemp("video") / "clip.mp4")
-
-
-@pytest.fixture
-def server(video, monkeypatch):
-    with StandInReplicate(video) as srv:
-        monkeypatch.setenv("REPLICATE_API_TOKEN", TOKEN)
-        monkeypatch.setenv("REPLICATE_BASE_URL", srv.url)
-        yield srv
 
 
 def write_config(tmp_path, **client) -> Path:

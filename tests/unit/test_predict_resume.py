@@ -30,7 +30,8 @@ sys.path.insert(0, str(FIXTURES))
 
 import published_set as ps  # noqa: E402
 from PIL import Image  # noqa: E402
-from replicate_server import TOKEN, StandInReplicate, make_split, tiny_mp4  # noqa: E402
+from replicate_server import make_split  # noqa: E402
+from replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
 
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
@@ -321,14 +322,6 @@ def test_a_dry_run_follows_the_run_rule_and_writes_nothing(split, tmp_path, caps
 FAST_CLIENT = {"request_timeout_s": 5, "poll_interval_s": 0.01, "poll_max_interval_s": 0.02, "max_retries": 3,
                "backoff_base_s": 0.01, "backoff_max_s": 0.05, "example_timeout_s": 10, "max_output_bytes": 200_000}
 
-
-@pytest.fixture
-def server(tmp_path, monkeypatch):
-    pytest.importorskip("httpx")  # the hosted models' client (the "models" extra)
-    with StandInReplicate(tiny_mp4(tmp_path / "clip.mp4")) as srv:
-        monkeypatch.setenv("REPLICATE_API_TOKEN", TOKEN)
-        monkeypatch.setenv("REPLICATE_BASE_URL", srv.url)
-        yield srv
 
 
 def hosted_config(tmp_path, seed_field=None) -> Path:
