@@ -64,7 +64,6 @@ def lazy(target: str):
     def run(args, ctx: RunContext):
         return load_target(target, "command")(args, ctx)
 
-    run.target = target
     return run
 
 

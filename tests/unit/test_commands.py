@@ -1,0 +1,50 @@
+"""The command line as a list of commands: every declared run function exists, names are unique, the shared
+option groups read back the same way everywhere, and building the parser imports no heavy package."""
+
+import subprocess
+import sys
+
+from rigidbench.cli import COMMANDS, build_parser
+from rigidbench.commands import selection_from
+from rigidbench.registry import load_target
+
+
+def all_commands(commands=COMMANDS, prefix=()):
+    for command in commands:
+        yield prefix + (command.name,), command
+        yield from all_commands(command.subcommands, prefix + (command.name,))
+
+
+def test_every_command_runs_a_function_that_exists_and_names_are_unique():
+    names = [path for path, _ in all_commands()]
+    assert len(names) == len(set(names))
+    runnable = [(path, c) for path, c in all_commands() if not c.subcommands]
+    assert {("render",), ("evaluate",), ("probe", "extract")} <= {path for path, _ in runnable}
+    for path, command in runnable:
+        assert callable(load_target(command.run, "command")), " ".join(path)
+
+
+def test_selection_options_read_back_the_same_in_every_stage():
+    parser = build_parser()
+    for argv in (["evaluate", "preds", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"],
+                 ["predict", "reference", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"],
+                 ["preprocess", "--data", "d", "--out", "c", "--ids", "00001,00003", "00007", "--limit", "2",
+                  "--shard", "1/2"],
+                 ["render", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"]):
+        selection = selection_from(parser.parse_args(argv))
+        assert selection.ids == ("00001", "00003", "00007") and selection.limit == 2, argv[0]
+        assert (selection.shard.index, selection.shard.count) == (1, 2)
+        assert selection.apply(["00001", "00002", "00003", "00007"], "here") == ["00003"]
+
+
+def test_model_args_and_their_flag_aliases_parse():
+    args = build_parser().parse_args(["predict", "wan-2.2", "--model-args", "offload=true", "--tiled-vae"])
+    assert args.model_args == "offload=true" and args.tiled_vae is True and args.offload is False
+
+
+def test_building_the_parser_imports_no_heavy_package():
+    code = ("import sys; from rigidbench.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('torch', 'bpy', 'ray', 'diffusers', 'cv2', 'matplotlib', 'numpy') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
