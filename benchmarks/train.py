@@ -9,9 +9,10 @@ GPU (when torch sees one): the paper's ``lora`` and ``full`` configurations at r
 weights (``init: random``: Wan 2.2 TI2V-5B's transformer configuration, so no download) on one GPU,
 on a synthetic cache of real-shape latents (48 x 13 x 22 x 40) and text (4096 wide, 120 real tokens
 padded to 512): seconds per optimizer step (LoRA: 8 accumulated batches of 2; full: one batch of 16
-with gradient checkpointing) and peak GPU memory. Full fine-tuning keeps float32 weights, gradients
-and AdamW state (80 GB for 5B parameters) unsharded on one GPU, so it needs more than an H100's 80 GB;
-the eight-GPU FSDP run shards them.
+with gradient checkpointing) and peak GPU memory. Full fine-tuning with the packaged bfloat16 master
+weights keeps weights, gradients and AdamW state (8 bytes x 4.9 billion trainable parameters, 39 GB)
+unsharded on one GPU, plus the activations; with ``--set master_weights=float32`` that is 79 GB, more
+than an H100 holds. The eight-GPU FSDP run shards them.
 
 From the measured GPU numbers it projects the hours for the paper's 3,000 steps on eight GPUs. That
 number is a projection, not a measurement: under DDP and FSDP each of the eight GPUs does the same

@@ -14,7 +14,11 @@ converts it. ``write_inputs`` writes ``inputs.jsonl`` with the keys of the autho
 (``id``, ``image`` relative to the file's folder, ``scene_prompt``, ``prompt``, ``negative_prompt``,
 ``duration_seconds``, ``reference_fps``, ``reference_frames``, ``reference_resolution``, ``task``,
 ``protocol``) beside ours (``partition``, ``task_prompt``), so a generation script written for the
-release runs unchanged.
+release runs unchanged. The file goes where the release puts it, ``DATA/inputs.jsonl`` beside
+``DATA/eval`` (``inputs_path``), whichever of the two ``--data`` names. ``BenchmarkExample`` and
+``export_inputs_jsonl`` are the release's names for ``Example`` and ``write_inputs``; like the
+release's ``Benchmark``, ours is indexed by position (``bench[0]``), and by id as well
+(``bench["00007"]``).
 
 Standard library only: ``import rigidbench`` imports this module.
 """
@@ -29,7 +33,7 @@ from typing import Any, Iterator
 
 from .atomic import write_text
 from .errors import BundleError
-from .folders import BundleFolder
+from .folders import BundleFolder, inputs_path
 from .groundtruth.layout import (SAMPLE_WHAT, PublishedLayoutError, check_not_published_layout,  # noqa: F401
                                  find_published_layout, is_published_metadata, published_layout_message,
                                  sample_dirs)
@@ -50,8 +54,6 @@ NEGATIVE_PROMPT = (
 
 #: The evaluation protocol's name, as the authors' release writes it into inputs.jsonl.
 PROTOCOL = "rigidbench-v1"
-#: The file `rigidbench inputs` writes.
-INPUTS_FILE = "inputs.jsonl"
 #: What a bundle whose metadata.json does not say is assumed to hold (the paper preset; video.REFERENCE_*).
 DEFAULT_FPS = 24.0
 DEFAULT_FRAMES = 49
@@ -186,22 +188,44 @@ class Benchmark:
     def __len__(self) -> int:
         return len(self.examples)
 
-    def __getitem__(self, sample_id: str) -> Example:
-        for ex in self.examples:
-            if ex.id == sample_id:
-                return ex
-        raise KeyError(f"no example '{sample_id}' in {self.root}")
+    def __getitem__(self, key: int | slice | str) -> Any:
+        """``bench[0]``: the first example, by position as in the authors' release (negative counts from
+        the end; IndexError past it; ``bench[:10]`` a list); ``bench["00007"]``: the example of that id
+        (KeyError when none)."""
+        if isinstance(key, slice):
+            return self.examples[key]
+        if isinstance(key, str):
+            for ex in self.examples:
+                if ex.id == key:
+                    return ex
+            raise KeyError(f"no example '{key}' in {self.root}")
+        if isinstance(key, bool) or not hasattr(key, "__index__"):
+            raise TypeError(f"a Benchmark is indexed by position (int) or example id (str), not {type(key).__name__}")
+        try:
+            return self.examples[key]
+        except IndexError:
+            raise IndexError(f"example {key} out of range: {self.root} has {len(self.examples)} examples") from None
+
+
+#: The release's name for an example.
+BenchmarkExample = Example
 
 
 def write_inputs(data_dir: str | Path, out: str | Path | None = None) -> Path:
     """Write inputs.jsonl (one example per line) for model runners in any language; returns its path.
 
-    data_dir: as for ``Benchmark.load``; out defaults to ``data_dir/inputs.jsonl``. Each row's
-    ``image`` is relative to the file's own folder (absolute when the frame is not below it). The
-    file is replaced atomically.
+    data_dir: as for ``Benchmark.load``; out defaults to ``inputs_path`` of the split directory loaded
+    (``DATA/inputs.jsonl`` whether ``data_dir`` is ``DATA`` or ``DATA/eval``). Each row's ``image`` is
+    relative to the file's own folder (absolute when the frame is not below it). The file is replaced
+    atomically.
     """
     bench = Benchmark.load(data_dir)
-    out = Path(out) if out else Path(data_dir) / INPUTS_FILE
+    out = Path(out) if out else inputs_path(bench.root)
     out.parent.mkdir(parents=True, exist_ok=True)
     text = "".join(json.dumps(ex.to_dict(relative_to=out.parent), ensure_ascii=False) + "\n" for ex in bench)
-    return write_text(out, text, encoding="utf-8", unique=True, mode=0o644)  # for any model runner
+    return write_text(out, text, encoding="utf-8", unique=True)
+
+
+def export_inputs_jsonl(data_dir: str | Path, output: str | Path | None = None) -> Path:
+    """The authors' release's name and argument for ``write_inputs``."""
+    return write_inputs(data_dir, output)

@@ -1,7 +1,7 @@
 """Typed homes for the three folders a user handles: their file names and how to find what is in them.
 
 - a split of bundles (``data/eval/``): one folder per example, ``<id>/`` with the files below
-  (``SplitFolder``, ``BundleFolder``);
+  (``SplitFolder``, ``BundleFolder``), and the model inputs file beside it (``inputs_path``);
 - a predictions folder (``predictions/MODEL/``): ``<id>.<ext>`` videos (``VIDEO_EXTENSIONS``), the
   world state beside each (``<id>.state.npz``), ``generation.json``, and the hidden
   ``.generation/<id>.json``, ``.predictor.json``, ``.hosted/`` and ``.scratch/`` (``PredictionsFolder``;
@@ -84,6 +84,20 @@ class SplitFolder:
 
     def bundle(self, sample_id: str) -> BundleFolder:
         return BundleFolder(self.path / sample_id)
+
+
+#: The model inputs file that `rigidbench inputs`, `import` and `download` write (where: ``inputs_path``).
+INPUTS_FILE = "inputs.jsonl"
+#: The split directory whose inputs file lies beside it, in the data root, as the authors' release writes it.
+EVAL_SPLIT = "eval"
+
+
+def inputs_path(split_dir: str | Path) -> Path:
+    """Where the inputs file of a split directory goes: ``DATA/inputs.jsonl`` for ``DATA/eval`` (the data
+    root, as the authors' release writes it); a split directory of another name (``DATA/train``, or bundles
+    directly in a folder) keeps its own, ``DIR/inputs.jsonl``."""
+    split_dir = Path(split_dir)
+    return (split_dir.parent if split_dir.name == EVAL_SPLIT else split_dir) / INPUTS_FILE
 
 
 # -- a predictions folder ------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from rigidbench.benchmark import find_published_layout, is_published_metadata, published_layout_message
-from rigidbench.firstframe import (MISMATCH_KIND, check_first_frame, mismatch_message, read_first_frame,
+from rigidbench.firstframe import (MISMATCH_KIND, compare_first_frames, mismatch_message, read_first_frame,
                                    read_reference_first_frame)
 from rigidbench.folders import GENERATION_FILE, METADATA_FILE, STATE_SUFFIX
 from rigidbench.groundtruth.bundle import bundle_dirs, check_bundle, repair_hint
@@ -250,10 +250,11 @@ def check_first_frame_of(path: Path, ref: ReferenceSpec, data_dir: Path, report:
     except VideoError as exc:
         report.add(ERROR, "undecodable", f"{path.name}: {exc.reason}", ref.example_id, path)
         return
-    matches, score = check_first_frame(pred_first, ref_first)
-    if not matches:
+    first = compare_first_frames(pred_first, ref_first)
+    if not first.matches:
         report.add(ERROR, MISMATCH_KIND, mismatch_message(path, ref.example_id, data_dir, {"source": ref.source},
-                                                          score), ref.example_id, path)
+                                                          first.correlation, first.orientation,
+                                                          first.turned_correlation), ref.example_id, path)
 
 
 def _reference_first_frame(bundle_dir: Path) -> np.ndarray | None:

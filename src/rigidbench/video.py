@@ -475,7 +475,15 @@ def iter_video(path: str | Path, *, until_s: float | None = None) -> Iterator[tu
         container.close()
 
 
-def read_video(path: str | Path, *, fps: float | None = None, until_s: float | None = None) -> Video:
+#: The decoders ``read_video`` offers. ``pyav`` converts YUV to RGB with the matrix the stream's colour
+#: tag names (BT.709 for most hosted models' output), frame times from the container; ``opencv`` decodes
+#: as the published evaluator did (``cv2.VideoCapture``): BT.601 whatever the tag, frame k at k / the
+#: header's frame rate. Untagged streams decode to the same pixels with both.
+DECODERS = ("pyav", "opencv")
+
+
+def read_video(path: str | Path, *, fps: float | None = None, until_s: float | None = None,
+               decoder: str = "pyav") -> Video:
     """path: a video file or a directory of PNG frames (needs fps). Returns Video, RGB uint8, real timestamps.
 
     Timestamps come from iter_video. ``fps`` overrides them with k / fps (required for PNG
@@ -483,13 +491,18 @@ def read_video(path: str | Path, *, fps: float | None = None, until_s: float | N
     that time needs: every frame with a timestamp before it, and the first frame at or after it
     (within TIME_TOLERANCE_S), which is the frame at ``until_s`` itself or the later neighbour that
     linear and nearest alignment need at the end; nothing after that frame is decoded. It applies
-    to the returned timestamps (k / fps when ``fps`` is given).
+    to the returned timestamps (k / fps when ``fps`` is given). ``decoder``: one of DECODERS
+    (``read_video_opencv`` for ``opencv``).
     """
     path = Path(path)
+    if decoder not in DECODERS:
+        raise ValueError(f"unknown decoder {decoder!r}; known: {', '.join(DECODERS)}")
     if path.is_dir():
         if fps is None:
             raise VideoError(path, "a directory of PNG frames needs an explicit fps")
         return _read_png_dir(path, fps, until_s)
+    if decoder == "opencv":
+        return read_video_opencv(path, fps=fps, until_s=until_s)
     fps_nominal, hint = _stream_header(path)
     rate = fps if fps is not None else fps_nominal
     if rate and until_s is not None:
@@ -507,6 +520,43 @@ def read_video(path: str | Path, *, fps: float | None = None, until_s: float | N
         frames.close()
     times_s = np.arange(len(times)) / fps if fps is not None else np.asarray(times, dtype=np.float64)
     return Video(frames=buffer.result(), times_s=times_s, fps_nominal=fps if fps is not None else fps_nominal)
+
+
+def read_video_opencv(path: str | Path, *, fps: float | None = None, until_s: float | None = None) -> Video:
+    """path: a video file. Returns Video decoded as the published evaluator decoded predictions (its
+    ``eval/prepare.py``): ``cv2.VideoCapture`` frames in decoding order, BGR -> RGB, the YUV matrix
+    OpenCV's FFmpeg backend applies (BT.601) whatever colour matrix the stream is tagged with, and frame
+    k at k / fps (``fps``, else the header's rate, ``CAP_PROP_FPS``). ``until_s`` as in read_video."""
+    import cv2
+
+    path = Path(path)
+    check_video_file(path)
+    capture = cv2.VideoCapture(str(path))
+    try:
+        if not capture.isOpened():
+            raise VideoError(path, "OpenCV cannot open it as a video; re-encode it as H.264 mp4")
+        rate = float(fps) if fps is not None else float(capture.get(cv2.CAP_PROP_FPS))
+        if not (math.isfinite(rate) and rate > 0):
+            raise VideoError(path, "OpenCV reads no frame rate from its header; re-encode it with a constant "
+                                   "frame rate (e.g. 24 fps)")
+        hint = max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 1)
+        if until_s is not None:
+            hint = min(hint, max(int(math.ceil(until_s * rate)), 0) + 2)
+        buffer = _FrameBuffer(hint)
+        while True:
+            ok, bgr = capture.read()
+            if not ok or bgr is None:
+                break
+            if buffer.data is not None and bgr.shape != buffer.data.shape[1:]:
+                raise VideoError(path, f"frame {buffer.n} is {bgr.shape[1]}x{bgr.shape[0]}, unlike the first frame")
+            buffer.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+            if until_s is not None and _reached(buffer.n - 1, rate, until_s):
+                break
+    finally:
+        capture.release()
+    if buffer.n == 0:
+        raise VideoError(path, "OpenCV decodes no frames from it; re-encode it as H.264 mp4")
+    return Video(frames=buffer.result(), times_s=np.arange(buffer.n) / rate, fps_nominal=rate)
 
 
 def _stream_header(path: Path) -> tuple[float | None, int]:

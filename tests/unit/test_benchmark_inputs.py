@@ -35,13 +35,13 @@ def test_benchmark_iterates_examples_with_full_prompts(tmp_path):
 def test_inputs_jsonl_via_cli(tmp_path):
     data = _fake_split(tmp_path / "eval")
     assert main(["inputs", "--data", str(data)]) == 0
-    lines = [json.loads(line) for line in (data / "inputs.jsonl").read_text().splitlines()]
+    lines = [json.loads(line) for line in (tmp_path / "inputs.jsonl").read_text().splitlines()]  # beside eval/
     assert len(lines) == 3 and lines[2]["id"] == "00002" and lines[2]["partition"] == "ood_scene"
     assert set(lines[0]) >= {"id", "image", "prompt", "negative_prompt", "task", "partition"}
     # the same rows wherever the file goes; only `image` is relative to the file's own folder
-    other = [json.loads(line) for line in write_inputs(data, tmp_path / "x.jsonl").read_text().splitlines()]
-    assert [r["image"] for r in lines] == [f"{i:05d}/frames/00000.png" for i in range(3)]
-    assert [r["image"] for r in other] == [f"eval/{i:05d}/frames/00000.png" for i in range(3)]
+    other = [json.loads(line) for line in write_inputs(data, data / "x.jsonl").read_text().splitlines()]
+    assert [r["image"] for r in lines] == [f"eval/{i:05d}/frames/00000.png" for i in range(3)]
+    assert [r["image"] for r in other] == [f"{i:05d}/frames/00000.png" for i in range(3)]
     assert [{**r, "image": None} for r in other] == [{**r, "image": None} for r in lines]
 
 
@@ -140,11 +140,12 @@ def test_a_release_generation_script_runs_unchanged(data_root, tmp_path, monkeyp
     assert [j[0] for j in jobs] == ["00000", "00001", "00002"]
     assert all(size == (64, 36) and n == 49 and p.endswith("Motion begins on the first frame.")
                for _, size, p, _, n in jobs)
-    # the same through the command line, which writes into the split directory it was given
+    # the same through the command line, given the split directory: the same file, data/inputs.jsonl
+    out.unlink()
     assert main(["inputs", "--data", str(data_root / "eval")]) == 0
-    assert len(read_like_the_release(data_root / "eval" / "inputs.jsonl")) == 3
-    assert json.loads((data_root / "eval" / "inputs.jsonl").read_text().splitlines()[0])["image"] == \
-        "00000/frames/00000.png"
+    assert len(read_like_the_release(out)) == 3
+    assert json.loads(out.read_text().splitlines()[0])["image"] == "eval/00000/frames/00000.png"
+    assert not (data_root / "eval" / "inputs.jsonl").exists()
 
 
 def test_a_linked_first_frame_keeps_its_bundle_path(data_root, tmp_path):
@@ -252,3 +253,61 @@ def test_our_bundles_are_not_mistaken_for_the_published_layout(data_root):
     _published_sample(data_root / "eval", "00005")
     with pytest.raises(PublishedLayoutError, match="rigidbench import"):
         rigidbench.Benchmark.load(data_root)
+
+
+# -- one place for inputs.jsonl; the release's indexing and names ------------------------------------------------
+
+
+def test_inputs_go_to_one_place_whichever_data_is_named(data_root, capsys):
+    from rigidbench.folders import inputs_path
+    from rigidbench.firstframe import mismatch_message
+    from rigidbench.groundtruth.bundle import resolve_split_dir
+
+    expected = data_root / "inputs.jsonl"  # beside eval/, where download and import write it (the release's place)
+    for data in (data_root, data_root / "eval"):
+        expected.unlink(missing_ok=True)
+        assert main(["inputs", "--data", str(data)]) == 0
+        assert capsys.readouterr().out.strip() == f"wrote {expected}"
+        assert len(read_like_the_release(expected)) == 3 and not (data_root / "eval" / "inputs.jsonl").exists()
+        assert write_inputs(data) == expected == inputs_path(resolve_split_dir(data))
+        # the first-frame error validate and evaluate give (they hold the split directory) names that file
+        message = mismatch_message(Path("p/00000.mp4"), "00000", resolve_split_dir(data), None, 0.1)
+        assert f"writes {expected})" in message
+    # a split directory of another name keeps its own file: train inputs never overwrite the evaluation's
+    _bundle(data_root / "train", "00005")
+    assert main(["inputs", "--data", str(data_root), "--split", "train"]) == 0
+    assert capsys.readouterr().out.strip() == f"wrote {data_root / 'train' / 'inputs.jsonl'}"
+    assert [json.loads(line)["id"] for line in expected.read_text().splitlines()] == ["00000", "00001", "00002"]
+    assert inputs_path(Path("bundles")) == Path("bundles/inputs.jsonl")
+
+
+def test_the_readme_names_the_same_place():
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    assert "data/inputs.jsonl" in readme and "eval/inputs.jsonl" not in readme
+
+
+def test_examples_are_indexed_by_position_as_in_the_release_and_by_id(data_root):
+    bench = rigidbench.Benchmark.load(data_root)
+    ids = ["00000", "00001", "00002"]
+    assert [bench[i].id for i in range(len(bench))] == ids == [e.id for e in bench]
+    assert bench[-1].id == "00002" and bench[np.int64(1)] is bench["00001"] is bench[1]
+    assert [e.id for e in bench[1:]] == ids[1:]
+    with pytest.raises(IndexError, match="has 3 examples"):
+        bench[3]
+    with pytest.raises(KeyError, match="00009"):
+        bench["00009"]
+    with pytest.raises(TypeError):
+        bench[1.0]
+
+
+def test_the_release_names_are_exported(data_root, tmp_path):
+    from rigidbench import Benchmark, BenchmarkExample, export_inputs_jsonl  # the release's __all__
+
+    example = Benchmark.load(data_root)[0]
+    assert isinstance(example, BenchmarkExample) and BenchmarkExample is rigidbench.Example
+    assert all(hasattr(example, key) for key in RELEASE_KEYS)
+    assert {"Benchmark", "BenchmarkExample", "export_inputs_jsonl", "write_inputs"} <= set(rigidbench.__all__)
+    positional = export_inputs_jsonl(data_root, tmp_path / "a.jsonl")
+    keyword = export_inputs_jsonl(data_root / "eval", output=tmp_path / "b.jsonl")
+    assert positional.read_text() == keyword.read_text() == write_inputs(data_root, tmp_path / "c.jsonl").read_text()
+    assert export_inputs_jsonl(data_root) == data_root / "inputs.jsonl"

@@ -469,3 +469,67 @@ def test_listed_parts_with_their_own_md5_name_the_damaged_part(make_set, client,
     download_dataset(desc, s.data, progress=False, client=client, settings=FAST)
     assert s.server.requests() == s.server.requests(damaged) == 1
     assert tree(root / "extracted") == expected_tree(published_members())
+
+
+# -- issue 32 ----------------------------------------------------------------------------------------
+
+
+def test_the_disk_check_counts_what_the_import_writes(make_set, client, monkeypatch):
+    """The import's own files (up to the archive's size: depth, masks, tracks) land in the space the deleted
+    parts free; with --keep-archive they need room of their own, and the check says so before any request."""
+    s = make_set()
+    margin = int(0.02 * len(s.archive))
+    extraction_peak = len(s.archive) + len(s.archive) + margin  # every part, the extraction, the margin
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: real(path)._replace(free=extraction_peak))
+    with pytest.raises(DiskSpaceError) as err:
+        download_dataset(s.desc, s.data, progress=False, client=client, settings=FAST, keep_archive=True)
+    message = str(err.value)
+    assert f"{len(s.archive) / 1000:.1f} kB more to import" in message and "beside the kept parts" in message
+    assert s.server.requests() == 0
+    download_dataset(s.desc, s.data, progress=False, client=client, settings=FAST)  # the parts go before the import
+    assert (s.root / "complete.json").is_file()
+
+
+def test_deleting_the_extraction_never_fetches_the_archive_again(make_set, client):
+    s = make_set()
+    download_dataset(s.desc, s.data, progress=False, client=client, settings=FAST)
+    shutil.rmtree(s.root / "extracted")
+    before = s.server.requests()
+    with pytest.raises(dl.ExtractionDeletedError) as err:
+        download_dataset(s.desc, s.data, progress=False, client=client, settings=FAST)
+    assert str(s.root / "complete.json") in str(err.value) and s.server.requests() == before
+    # parts kept: extracted again from them, offline
+    k = make_set()
+    download_dataset(k.desc, k.data, progress=False, client=client, settings=FAST, keep_archive=True)
+    shutil.rmtree(k.root / "extracted")
+    before = k.server.requests()
+    out = download_dataset(k.desc, k.data, progress=False, client=client, settings=FAST, keep_archive=True)
+    assert tree(out) == expected_tree(published_members()) and k.server.requests() == before
+
+
+def test_data_naming_a_file_is_a_clear_error(make_set, client, tmp_path):
+    from rigidbench.errors import UserError
+
+    s = make_set()
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(UserError, match="a file, not a folder"):
+        download_dataset(s.desc, tmp_path / "afile", progress=False, client=client, settings=FAST)
+    assert s.server.requests() == 0
+
+
+def test_a_download_into_data_another_run_imports_into_is_refused(make_set, tmp_path, capsys):
+    import fcntl
+
+    from rigidbench.cli import main
+    from rigidbench.datasets.datadir import LOCK_FILE
+
+    s = make_set()
+    s.data.mkdir()
+    config = Path(s.desc.source).parent.parent
+    with open(s.data / LOCK_FILE, "a") as running:
+        fcntl.flock(running.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert main(["--config", str(config), "download", "--data", str(s.data), "--dataset", "test-eval"]) == 2
+    err = capsys.readouterr().err
+    assert "another rigidbench download or import" in err and len(err.strip().splitlines()) == 1
+    assert s.server.requests() == 0

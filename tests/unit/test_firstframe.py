@@ -1,17 +1,19 @@
 """The first-frame check: the same frame survives codecs, resizing and a model's small changes; another
 example's first frame does not. Synthetic 1280x704 rooms (a wall/floor edge, furniture, a brick texture,
-shaded balls), each seed another scene and camera."""
+shaded balls), each seed another scene and camera; and real renders (tests/fixtures/frames: first frames
+cropped from docs/gallery's sheets) rotated, mirrored and re-encoded."""
 
 from __future__ import annotations
 
 import io
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image, ImageFilter
 
-from rigidbench.firstframe import (COMPARE_WIDTH, area_resize, check_first_frame, compare_size,
+from rigidbench.firstframe import (COMPARE_WIDTH, area_resize, check_first_frame, compare_first_frames, compare_size,
                                    describe_reference_set, first_frame_correlation, mismatch_message,
                                    read_first_frame, read_reference_first_frame, to_gray)
 
@@ -158,8 +160,10 @@ def test_the_message_names_the_file_both_sets_and_the_fix(tmp_path):
     imported = {"source": {"dataset": "rigidbench-eval", "version": "1.1", "md5": "b563"}}
     msg = mismatch_message(pred, "00003", data, imported, 0.12)
     for part in ("00003.mp4", "reference example 00003", str(data), "rigidbench-eval", "version 1.1",
-                 "0.12", str(pred.parent), "another set's inputs", "regenerate", str(data / "inputs.jsonl")):
+                 "0.12", str(pred.parent), "another set's inputs", "regenerate",
+                 f"rigidbench inputs --data {data}` writes {data.parent / 'inputs.jsonl'}"):  # DATA/inputs.jsonl
         assert part in msg, part
+    assert str(data / "inputs.jsonl") not in msg
     rendered = mismatch_message(pred, "00003", tmp_path / "data" / "eval", {"task": "bounce"}, 0.3)
     assert "rendered by rigidbench render" in rendered and "rigidbench-eval" not in rendered
     assert describe_reference_set("d", None) == "d (rendered by rigidbench render)"
@@ -178,3 +182,89 @@ def test_reference_first_frame_from_png_or_video(tmp_path):
     (tmp_path / "b").mkdir()
     write_video(tmp_path / "b" / "video.mp4", np.repeat(frame[None], 2, axis=0), fps=24, lossless=True)
     assert np.array_equal(read_reference_first_frame(tmp_path / "b"), frame)
+
+
+# -- rotated and mirrored first frames: realistic renders (crops of docs/gallery's sheets) -----------------
+
+GALLERY_FRAMES = Path(__file__).resolve().parents[1] / "fixtures" / "frames"
+
+
+def gallery_frame(name: str) -> np.ndarray:
+    """(352, 636, 3) uint8: the first frame of a paper-preset render, as the gallery sheet shows it."""
+    with Image.open(GALLERY_FRAMES / f"{name}.jpg") as image:
+        return np.asarray(image.convert("RGB"))
+
+
+GALLERY = ("00027_beach_gazebo", "00024_dining_room_set", "00005_modern_japandi_dining")
+TURNS = {"rotated 180 degrees": lambda a: a[::-1, ::-1], "mirrored left to right": lambda a: a[:, ::-1],
+         "upside down": lambda a: a[::-1]}
+
+
+def vignette(a: np.ndarray, strength: float = 0.7) -> np.ndarray:
+    """A strong lens vignette: brightness times max(0, 1 - strength r^2), r in half-width/half-height units."""
+    h, w = a.shape[:2]
+    y, x = np.mgrid[0:h, 0:w]
+    r2 = ((x - w / 2) / (w / 2)) ** 2 + ((y - h / 2) / (h / 2)) ** 2
+    return np.clip(a * np.clip(1 - strength * r2, 0, 1)[..., None], 0, 255).astype(np.uint8)
+
+
+def pearson_of_thumbnails(pred: np.ndarray, ref: np.ndarray) -> float:
+    """An independent statistic: PIL's box-filter resize to 64 px wide, Rec. 601 luma, Pearson over pixels."""
+    size = (64, round(64 * ref.shape[0] / ref.shape[1]))
+
+    def small(a):
+        rgb = np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BOX), np.float64)
+        return (rgb @ np.array([0.299, 0.587, 0.114])).ravel()
+    return float(np.corrcoef(small(pred), small(ref))[0, 1])
+
+
+def test_a_mirrored_realistic_frame_is_refused():
+    ref = gallery_frame("00027_beach_gazebo")  # a beach, a gazebo on the left: not symmetric
+    mirrored = ref[:, ::-1]
+    # the frame as given correlates above the 0.8 threshold (0.81): the correlation alone took it for a match
+    assert pearson_of_thumbnails(mirrored, ref) > 0.8 and first_frame_correlation(mirrored, ref) > 0.8
+    ok, score = check_first_frame(mirrored, ref)
+    assert not ok and score == pytest.approx(first_frame_correlation(mirrored, ref))
+    first = compare_first_frames(mirrored, ref)
+    assert first.orientation == "mirrored left to right" and first.turned_correlation > 0.99
+    assert first.facts() == {"correlation": round(score, 4), "matches": False, "orientation": "mirrored left to right",
+                             "turned_correlation": round(first.turned_correlation, 4)}
+
+
+def test_rotated_and_flipped_realistic_frames_are_refused_and_named(tmp_path):
+    pytest.importorskip("av")
+    for name in GALLERY:
+        for ref in (gallery_frame(name), vignette(gallery_frame(name))):
+            for turn, apply in TURNS.items():
+                turned = np.ascontiguousarray(apply(ref))
+                for pred in (turned, h264(turned, tmp_path / "t.mp4")):
+                    first = compare_first_frames(pred, ref)
+                    assert (first.matches, first.orientation) == (False, turn), (name, turn, first)
+                    assert first.turned_correlation > 0.99
+    # under the vignette the rotated dining room keeps its coarse layout: 0.84 as given, above the threshold
+    ref = vignette(gallery_frame("00024_dining_room_set"))
+    assert first_frame_correlation(ref[::-1, ::-1], ref) > 0.8 and pearson_of_thumbnails(ref[::-1, ::-1], ref) > 0.8
+    assert check_first_frame(ref[::-1, ::-1], ref)[0] is False
+
+
+def test_honest_variants_of_realistic_frames_still_match(tmp_path):
+    pytest.importorskip("av")
+    gamma = np.clip(np.rint(255.0 * (np.arange(256) / 255.0) ** 2.5), 0, 255).astype(np.uint8)
+    for name in GALLERY:
+        for ref in (gallery_frame(name), vignette(gallery_frame(name))):
+            h, w = ref.shape[:2]
+            zoomed = lanczos(ref[5:h - 5, 10:w - 10], w, h)  # about 3 %
+            variants = {"jpeg q20": jpeg(ref, 20), "h264": h264(ref, tmp_path / "h.mp4"),
+                        "resized": lanczos(ref, 416, 230), "blur sigma 6": blur(ref, 6), "+30 %": brighter(ref, 1.3),
+                        "gamma 2.5": gamma[ref], "3 % zoom": zoomed, "8 px shift at 1280": np.roll(ref, (4, 4), (0, 1))}
+            for variant, pred in variants.items():
+                first = compare_first_frames(pred, ref)
+                assert first.matches and first.orientation is None, (name, variant, first)
+
+
+def test_the_message_names_a_turned_frame(tmp_path):
+    pred = tmp_path / "predictions" / "wan" / "00027.mp4"
+    msg = mismatch_message(pred, "00027", tmp_path / "data" / "eval", None, 0.81, "mirrored left to right", 0.998)
+    for part in ("00027.mp4", "reference example 00027", "mirrored left to right", "0.81", "1.00", "regenerate"):
+        assert part in msg, part
+    assert "another set's inputs" not in msg  # a turned frame is not another set's

@@ -84,7 +84,11 @@ def test_wan_defaults_are_the_papers_and_the_run_records_them():
     assert info["negative_prompt"] == NEGATIVE_PROMPT and info["seed"] == 7 and "differs_from_paper" not in info
     assert info["offload"] is False and info["tiled_vae"] is False and info["device"] in ("cpu", "cuda")
     assert info["sampler"] == "flow-euler" and "DiffSynth" in info["release_sampler"]
-    assert "differs_from_release" not in info and "libx264rgb" in info["storage"] and "sha256" in info["seeds"]
+    assert "libx264rgb" in info["storage"] and "sha256" in info["seeds"]
+    # recipe ours: the release's sampler, diffusers' numerics (recipe=release takes DiffSynth's)
+    assert info["recipe"] == "ours" and info["differs_from_release"] == {
+        "timestep_dtype": ["float32", "bfloat16"], "update_dtype": ["float32", "bfloat16"],
+        "vae_codec": ["diffusers", "diffsynth-tiled"]}
 
 
 def test_cosmos_defaults_are_the_papers():
@@ -477,7 +481,8 @@ def test_wan_names_the_packages_its_pipeline_needs(monkeypatch, checkpoints):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in ("ftfy", "peft") else real(name, *a))
     predictor = PREDICTORS["wan-2.2"].create()
     with pytest.raises(RigidBenchError, match=r"wan-2.2 needs ftfy \(diffusers' Wan pipeline cleans every prompt "
-                                              r"with it\): pip install ftfy$"):
+                                              r"with it\), which is not installed: pip install 'rigidbench\[models\]'$"):
         predictor.generation_info(ctx_for())
-    with pytest.raises(RigidBenchError, match="needs ftfy .*; peft \\(to load a LoRA checkpoint\\): pip install ftfy peft"):
+    with pytest.raises(RigidBenchError, match=r"needs ftfy .*; peft \(to load a LoRA checkpoint\), which are not "
+                                              r"installed: pip install 'rigidbench\[models\]'$"):
         predictor.generation_info(ctx_for(checkpoint=str(checkpoints["root"] / "peft")))

@@ -28,7 +28,7 @@ import tiny_video_models as tiny  # noqa: E402
 
 WAN, COSMOS, VEO, STATIC = (PREDICTORS[n] for n in ("wan-2.2", "cosmos-2.5", "veo-3.1", "static"))
 WAN_PUBLIC = ("offload, tiled_vae, model_path, revision, height, width, num_frames, steps, guidance_scale, fps, "
-              "dtype, checkpoint, sampler")
+              "dtype, checkpoint, sampler, recipe, timestep_dtype, update_dtype, vae_codec")
 
 
 # -- a plug-in's own options, as a user would declare them ------------------------------------------------------
@@ -144,7 +144,11 @@ def test_an_unknown_option_lists_the_models_options():
 
 
 def test_the_option_choices_are_the_models_own():
-    assert option_specs(WanOptions)[-1].choices == tuple(wan.SAMPLERS) and WanOptions().sampler == wan.DEFAULT_SAMPLER
+    wan_specs = {s.name: s for s in option_specs(WanOptions)}
+    assert wan_specs["sampler"].choices == tuple(wan.SAMPLERS) and WanOptions().sampler == wan.DEFAULT_SAMPLER
+    assert wan_specs["recipe"].choices == tuple(wan.RECIPES) and WanOptions().recipe == "ours"
+    for numerics in wan.RECIPES.values():  # every recipe value is a choice of its option, described in NUMERICS
+        assert all(v in wan_specs[k].choices and v in wan.NUMERICS[k] for k, v in numerics.items())
     assert next(s for s in option_specs(LocalOptions) if s.name == "dtype").choices == local.DTYPES
     assert set(LEGACY_FLAGS) <= {s.name for c in (WanOptions, CosmosOptions, HostedOptions) for s in option_specs(c)}
 

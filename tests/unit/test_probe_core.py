@@ -121,7 +121,8 @@ def test_linear_probe_is_fit_on_raw_values_and_scored_by_pooled_r2_as_in_the_rel
 
 
 def release_inlp(x, y, reg=0.05, eps=0.05, max_iters=30, seed=0, tol=1e-6):
-    """The release's INLP steps written out directly (float64 numpy): 80/20 split by torch.randperm,
+    """The release's INLP steps written out directly, but in float64 numpy (the release ran them in float32:
+    ``release_inlp_float32``): 80/20 split by torch.randperm,
     ridge without intercept on the projected rows with penalty reg * N, pooled training R^2, projection
     of the rows onto the nullspace of each added regressor, rank of the stacked regressors."""
     perm = torch.randperm(len(x), generator=torch.Generator().manual_seed(seed)).numpy()
@@ -155,7 +156,7 @@ def redundant_position(n=2500, d=48, seed=0):
     return x.astype(np.float32), y
 
 
-def test_inlp_rank_and_r2_path_equal_the_release_computation():
+def test_inlp_rank_and_r2_path_equal_the_release_steps_in_float64():
     x, y = redundant_position()
     basis_ref, history_ref = release_inlp(x, y)
     res = inlp(x, y, device="cpu")
@@ -166,6 +167,64 @@ def test_inlp_rank_and_r2_path_equal_the_release_computation():
     # float32 Gram and solves land on the same subspace here
     r32 = inlp(x, y, device="cpu", dtype=torch.float32)
     assert r32.rank == res.rank and np.allclose(r32.basis @ r32.basis.T, res.basis @ res.basis.T, atol=1e-3)
+
+
+def release_inlp_float32(x, y, reg=0.05, eps=0.05, max_iters=30, seed=0, tol=1e-6):
+    """The release's INLP as it ran (``probe/inlp.py``: ``fit_cell`` and ``fit_inlp``), written out in torch:
+    float32 rows in the permutation's order, each ridge solved in float64 from the float32 projected rows and
+    cast back to float32, R^2 in float32, the rows re-projected in float32 onto each regressor's null space
+    (full SVD, 1e-6 rule), then the null space of the stacked regressors, its float32 projector, and the
+    null space of that projector as the basis. Returns (basis (D, r), R^2 history, regressors added)."""
+    def null(m):
+        _, s, vh = torch.linalg.svd(m, full_matrices=True)
+        keep = int((s > tol * float(s.max())).sum()) if float(s.max()) > 0 else 0
+        return vh[keep:].T
+
+    perm = torch.randperm(len(x), generator=torch.Generator().manual_seed(seed))
+    tr = perm[: int(0.8 * len(x))]
+    x_tr = torch.as_tensor(x, dtype=torch.float32)[tr]
+    y_tr = torch.as_tensor(np.asarray(y), dtype=torch.float32)[tr]
+    x_proj, collected, history = x_tr.clone(), [], []
+    for _ in range(max_iters):
+        xd, yd = x_proj.double(), y_tr.double()
+        n, d = xd.shape
+        w = torch.linalg.solve(xd.T @ xd + reg * n * torch.eye(d, dtype=torch.float64), xd.T @ yd).T.to(torch.float32)
+        pred = x_proj @ w.T
+        r2 = 1.0 - ((y_tr - pred) ** 2).sum().item() / ((y_tr - y_tr.mean(0)) ** 2).sum().item()
+        history.append(r2)
+        if r2 < eps:
+            break
+        collected.append(w)
+        b = null(w)
+        x_proj = (x_proj @ b) @ b.T
+    if not collected:
+        return np.zeros((x.shape[1], 0)), history, 0
+    joint = null(torch.cat(collected, dim=0))
+    return null(joint @ joint.T).double().numpy(), history, len(collected)
+
+
+def test_the_release_inlp_procedure_is_the_release_float32_computation_and_parts_from_the_stable_one():
+    x, y = redundant_position(n=4000, d=128)
+    basis, history, rounds = release_inlp_float32(x, y)
+    got = inlp(x, y, device="cpu", procedure="release")
+    assert got.procedure == "release" and got.rounds == rounds and len(history) > 10
+    assert got.train_r2 == pytest.approx(history, abs=1e-6)
+    assert got.rank == basis.shape[1]
+    assert np.allclose(got.basis @ got.basis.T, basis @ basis.T, atol=1e-5)
+    # the stable procedure equals the release's steps computed in float64 on these rows (which drift by
+    # 1e-8 over 14 rounds already; at 10x the scale they part too) ...
+    stable = inlp(x, y, device="cpu")
+    ref_basis, ref_history = release_inlp(x, y)
+    assert stable.train_r2 == pytest.approx(ref_history, abs=1e-6) and stable.rank == ref_basis.shape[1]
+    assert stable.rank == 3 * stable.rounds
+    # ... and the float32 steps part from it after some rounds: each re-projection leaves a little of the
+    # removed regressors, which the next, weakly penalised ridge fits again
+    common = min(len(got.train_r2), len(stable.train_r2))
+    diffs = np.abs(np.subtract(got.train_r2[:common], stable.train_r2[:common]))
+    assert diffs[:8].max() < 1e-3 and diffs.max() > 0.05
+    assert got.rank != stable.rank
+    with pytest.raises(ValueError, match="unknown INLP procedure"):
+        inlp(x[:50], y[:50], procedure="float16")
 
 
 def test_fit_bases_controls_come_from_the_inlp_training_rows():

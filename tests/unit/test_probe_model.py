@@ -161,3 +161,63 @@ def test_resuming_from_a_block_equals_a_forward_hook_at_every_block(tiny_setup):
                                       store["temb"], batch.noisy.shape)
         assert torch.allclose(hooked, resumed, atol=1e-6)
         assert not torch.allclose(hooked, out, atol=1e-4)
+
+
+def test_release_conditioning_rounds_timesteps_to_bfloat16_and_shares_the_noise(tiny_setup):
+    from rigidbench.probe.recipe import RECIPES, Conditioning
+
+    release = RECIPES["release"].conditioning
+    # independent: DiffSynth's training grid, the timestep cast to bfloat16 as the release's
+    # timestep_by_fraction(frac).to(bfloat16), and the scheduler's argmin lookup of sigma
+    s = np.linspace(1.0, 0.0, 1001)[:-1]
+    grid = 1000 * 5 * s / (1 + 4 * s)
+    rounded = [float(torch.tensor(grid[round(t * 999)], dtype=torch.float32).to(torch.bfloat16))
+               for t in wan.DEFAULT_TAUS]
+    used = [int(np.argmin(np.abs(grid - t))) for t in rounded]
+    assert used == [93, 303, 502, 698, 899]
+    pts = wan.schedule_points(wan.DEFAULT_TAUS, wan.make_objective(release))
+    assert [p["schedule_index"] for p in pts] == used and [p["index"] for p in pts] == [100, 300, 500, 699, 899]
+    assert [p["timestep"] for p in pts] == rounded
+    assert [p["sigma"] for p in pts] == pytest.approx([grid[i] / 1000 for i in used], abs=1e-12)
+    assert "schedule_index" not in wan.schedule_points([0.1])[0]  # ours: the exact grid timestep
+    _, latent, _ = tiny_setup
+    for n, tau in enumerate(wan.DEFAULT_TAUS):
+        batch = wan.noised_batch(latent, "00001", tau, conditioning=release)
+        assert batch.timestep_tokens.shape == (1,) and float(batch.timestep_tokens[0]) == rounded[n]
+        assert batch.schedule_index == used[n]
+        # bfloat16 noised latent from the shared noise (a generator seeded 0, whatever the clip)
+        eps = torch.randn((1, *latent.shape), generator=torch.Generator().manual_seed(0)).to(torch.bfloat16)
+        z = latent.unsqueeze(0).to(torch.bfloat16)
+        sigma = grid[used[n]] / 1000
+        assert torch.equal(batch.noisy[:, :, 1:], ((1 - sigma) * z + sigma * eps)[:, :, 1:].float())
+        assert torch.equal(batch.noisy[:, :, 0], z[:, :, 0].float())
+    ours = wan.noised_batch(latent, "00001", 0.5)
+    assert ours.timestep_tokens.shape == (1, 24) and ours.schedule_index == 500
+    # the clean slot's timestep alone: t on slot 0's tokens instead of 0
+    noisy_slot = wan.noised_batch(latent, "00001", 0.5, conditioning=Conditioning(clean_slot_timestep="noisy"))
+    assert noisy_slot.timestep_tokens.tolist() == pytest.approx([ours.timestep], abs=1e-4)
+    assert torch.equal(noisy_slot.noisy, ours.noisy) and float(ours.timestep_tokens[0, 0]) == 0.0
+    # shared noise is one tensor for every clip; per-clip noise differs between clips
+    shape = (1, *latent.shape)
+    assert torch.equal(wan.noise_for("a", shape, 0, release), wan.noise_for("b", shape, 0, release))
+    assert not torch.equal(wan.noise_for("a", shape), wan.noise_for("b", shape))
+    assert torch.equal(wan.noise_for("a", shape), wan.clip_noise("a", shape))
+
+
+def test_conditioning_choices_are_checked_and_recipes_compose():
+    from rigidbench.errors import UserError
+    from rigidbench.probe.recipe import RECIPES, Conditioning, conditioning_with, recipe, recipe_label
+
+    with pytest.raises(UserError, match="prompt must be one of task\\+suffix, task"):
+        Conditioning(prompt="suffix")
+    with pytest.raises(UserError, match="unknown probe recipe 'paper'"):
+        recipe("paper")
+    release = recipe("release")
+    assert release.inlp == "release" and recipe(None).name == "ours" and Conditioning().key_part() is None
+    assert release.conditioning.as_dict() == {"prompt": "task", "padding": "encoder", "clean_slot_timestep": "noisy",
+                                              "dtype": "bfloat16", "objective_dtype": "bfloat16", "noise": "shared"}
+    changed = conditioning_with(release.conditioning, noise="per-clip", dtype=None)
+    assert changed.noise == "per-clip" and changed.dtype == "bfloat16"
+    assert recipe_label("release", changed) == "release+changes" and recipe_label("release", RECIPES[
+        "release"].conditioning) == "release"
+    assert Conditioning.from_record(None) == Conditioning()

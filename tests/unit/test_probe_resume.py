@@ -370,3 +370,110 @@ def test_intervene_resumes_an_interrupted_run_to_the_effects_of_an_uninterrupted
     assert resumed["clips_this_run"] == 2 and not staging_path(out, "probe-intervene", "00001").exists()
     assert effects(out) == effects(clean)
     assert resumed["summary"] == json.loads((clean / "intervene.json").read_text())["summary"]
+
+
+# -- recipes -------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def seen_forwards(monkeypatch):
+    """What every transformer forward got: (the clip whose noise was drawn last, batch, text, dtype, a block
+    weight's dtype), and the noise drawn per clip."""
+    calls, noises, last = [], {}, {}
+    forward, noise_for = wan.forward, wan.noise_for
+
+    def spy_noise(clip_id, shape, seed, conditioning):
+        noises[clip_id] = noise_for(clip_id, shape, seed, conditioning)
+        last["clip"] = clip_id
+        return noises[clip_id]
+
+    def spy(transformer, batch, text, device, dtype=torch.float32):
+        calls.append((last["clip"], batch, text, dtype, transformer.blocks[0].attn1.to_q.weight.dtype))
+        return forward(transformer, batch, text, device, dtype)
+
+    monkeypatch.setattr(wan, "noise_for", spy_noise)
+    monkeypatch.setattr(wan, "forward", spy)
+    return calls, noises
+
+
+def test_extract_with_the_release_recipe_conditions_as_the_release_and_a_changed_choice_redoes_the_clips(
+        data, tmp_path, seen_forwards, capsys):
+    from rigidbench.benchmark import PROMPT_SUFFIX
+    from rigidbench.probe.recipe import RECIPES
+    from rigidbench.train.cache import LatentCache
+
+    bundles, cache_dir = data
+    calls, noises = seen_forwards
+    cache = LatentCache(cache_dir)
+    acts = tmp_path / "acts"
+    args = ["probe", "extract", "--backbone", "base", "--cache", str(cache_dir), "--data", str(bundles), "--out",
+            str(acts), "--limit", "2", "--no-progress"]
+    assert main(args + ["--recipe", "release"]) == 0
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["recipe"] == "release" and manifest["conditioning"] == RECIPES["release"].conditioning.as_dict()
+    assert [p["schedule_index"] for p in manifest["schedule"]] == [93, 303, 502, 698, 899]
+    assert len(calls) == 2 * 5
+    for clip, batch, text, dtype, weights in calls:
+        # the task prompt alone (no suffix), UMT5's outputs at all 512 positions
+        record = cache.manifest["prompts"][cache.prompt_key(clip, "task")]
+        assert record["text"] == (bundles / clip / "prompt.txt").read_text() and PROMPT_SUFFIX not in record["text"]
+        assert text.shape[1] == 512 and record["tokens"] < 512
+        np.testing.assert_array_equal(text[0].numpy(), cache.text(clip, "task")[:512].float().numpy())
+        assert text[0, record["tokens"]:].abs().sum() > 0
+        # one timestep for every token (slot 0 too), rounded to bfloat16; a bfloat16 forward
+        assert batch.timestep_tokens.shape == (1,)
+        assert float(batch.timestep_tokens[0]) in {980.0, 920.0, 832.0, 684.0, 360.0}
+        assert dtype == torch.bfloat16 and weights == torch.bfloat16
+    assert set(noises) == {"00000", "00001"} and torch.equal(noises["00000"], noises["00001"])  # shared noise
+
+    assert main(args + ["--recipe", "release"]) == 0 and len(calls) == 10  # the same recipe: nothing to do
+    capsys.readouterr()
+    calls.clear()
+    assert main(args) == 0  # ours: every clip again, with the evaluation prompt, zero padding, per-clip noise
+    assert "made again: 2 clips" in capsys.readouterr().out
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["recipe"] == "ours" and manifest["conditioning"]["noise"] == "per-clip"
+    for clip, batch, text, dtype, weights in calls:
+        tokens = cache.tokens(clip, "task+suffix")
+        assert PROMPT_SUFFIX in cache.manifest["prompts"][cache.prompt_key(clip)]["text"]
+        assert text[0, tokens:].abs().sum() == 0 and dtype == torch.float32 and weights == torch.float32
+        assert batch.timestep_tokens.shape == (1, 24) and (batch.timestep_tokens[0, :8] == 0).all()
+    assert not torch.equal(noises["00000"], noises["00001"])
+    calls.clear()
+    assert main(args + ["--recipe", "release", "--noise", "per-clip"]) == 0  # one choice changed: again
+    assert "made again: 2 clips" in capsys.readouterr().out and len(calls) == 10
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["recipe"] == "release+changes" and manifest["conditioning"]["noise"] == "per-clip"
+    assert manifest["conditioning"]["prompt"] == "task"
+
+
+def test_intervene_on_a_release_store_uses_its_conditioning_and_the_release_inlp(made, tmp_path, seen_forwards,
+                                                                                caplog):
+    from rigidbench.probe.recipe import RECIPES
+
+    bundles, cache = made
+    acts = tmp_path / "acts"
+    run_extract("base", cache, bundles, acts, model="tiny", progress=False, recipe="release")
+    calls, _ = seen_forwards
+    calls.clear()
+    out = tmp_path / "intv"
+    result = intervene(acts, cache, out, clips=1)
+    assert result["recipe"] == "release" and result["inlp"]["procedure"] == "release"
+    assert result["conditioning"] == RECIPES["release"].conditioning.as_dict() == result["store_conditioning"]
+    assert calls and all(c[3] == torch.bfloat16 and c[1].timestep_tokens.shape == (1,) for c in calls)
+    import csv
+
+    with (out / "bases.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 3
+    for row, facts in zip(rows, result["bases"]):
+        added = [r for r in facts["train_r2"] if not r < 0.05]
+        assert row["procedure"] == "release" and int(row["rounds"]) == len(added)
+        assert int(row["rounds_x3"]) == 3 * len(added) and int(row["rank"]) == facts["rank"]
+    # ours on the same store: the stable INLP refits every cell, the clip runs again, and the log says that
+    # the conditioning is not the store's
+    ours = intervene(acts, cache, out, clips=1, recipe="ours")
+    assert ours["inlp"]["procedure"] == "stable" and ours["bases_fitted_this_run"] == 6
+    assert ours["clips_this_run"] == 1 and "conditioning other than the store's extraction" in caplog.text
+    with (out / "bases.csv").open() as fh:
+        assert {r["procedure"] for r in csv.DictReader(fh)} == {"stable"}

@@ -5,7 +5,9 @@ to a results.json that names the dataset, its version and the protocol."""
 from __future__ import annotations
 
 import hashlib
+import html
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -18,7 +20,9 @@ import published_set as ps  # noqa: E402
 from dataset_server import StandInDatasetServer, split, write_description  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.groundtruth.bundle import Sample  # noqa: E402
+from rigidbench.groundtruth.bundle import Sample, check_bundle  # noqa: E402
+from rigidbench.report import build_report  # noqa: E402
+from rigidbench.report.load import read_run  # noqa: E402
 
 PART_BYTES = 40_000
 
@@ -68,7 +72,7 @@ def ate3d_floor(sample: Sample) -> float:
     return float(np.sqrt(np.mean(errors)) / displacement[displacement > 0.01].mean())
 
 
-def test_from_a_url_to_results_that_name_the_dataset(served, tmp_path, monkeypatch):
+def test_from_a_url_to_results_that_name_the_dataset(served, tmp_path, monkeypatch, capsys):
     server, config, md5, parts = served
     monkeypatch.chdir(tmp_path)
     server.cut[parts[1]] = [5000]  # the connection drops inside the second part: resumed with Range
@@ -78,7 +82,7 @@ def test_from_a_url_to_results_that_name_the_dataset(served, tmp_path, monkeypat
     assert bundles == ["00000", "00001", "00002"]
     meta = Sample(tmp_path / "data" / "eval" / "00000").metadata
     assert meta["source"]["dataset"] == "test-eval" and meta["source"]["md5"] == md5
-    assert meta["source"]["md5_verified"] is True
+    assert meta["source"]["verified"] is True and "download checked the MD5" in meta["source"]["verification"]
 
     # inputs.jsonl: the release's keys, images relative to the file's folder
     rows = [json.loads(line) for line in (tmp_path / "data" / "inputs.jsonl").read_text().splitlines()]
@@ -89,13 +93,25 @@ def test_from_a_url_to_results_that_name_the_dataset(served, tmp_path, monkeypat
     before = server.requests()
     assert main(["--config", str(config), "download", "--data", "data", "--dataset", "test-eval"]) == 0
     assert server.requests() == before
+    # its extraction given to import keeps the download's check: the same identity, nothing imported again
+    extracted = tmp_path / "data" / ".download" / "test-eval-v0.1" / "extracted"
+    capsys.readouterr()
+    assert main(["--config", str(config), "import", str(extracted), "--data", "data", "--dataset", "test-eval"]) == 0
+    assert "imported 0 samples, 3 unchanged" in capsys.readouterr().out
+    assert Sample(tmp_path / "data" / "eval" / "00000").metadata["source"]["verified"] is True
+    # the extraction may be deleted after the import (README): the bundles keep their files, nothing is fetched
+    shutil.rmtree(extracted)
+    assert main(["--config", str(config), "download", "--data", "data", "--dataset", "test-eval"]) == 0
+    assert server.requests() == before and check_bundle(tmp_path / "data" / "eval" / "00001") == []
 
     assert main(["predict", "reference", "--data", "data", "--out", "predictions/reference"]) == 0
     assert main(["validate", "predictions/reference", "--data", "data"]) == 0
     assert main(["evaluate", "predictions/reference", "--data", "data", "--perception", "gt", "--out",
                  "runs/reference"]) == 0
     results = json.loads((tmp_path / "runs" / "reference" / "results.json").read_text())
-    assert results["dataset"] == {"dataset": "test-eval", "version": "0.1", "md5": md5}
+    assert results["dataset"] == {"dataset": "test-eval", "version": "0.1", "md5": md5, "verified": True,
+                                  "verification": "rigidbench download checked the MD5 of the parts it fetched"}
+    assert not any("MD5" in reason for reason in results.get("why_not_official", []))
     assert results["protocol"]["name"] == "rigidbench-v1" and results["protocol"]["jpeg_quality"] == 95
     overall = results["overall"]
     assert overall["iou"]["mean"] == 1.0 and overall["ate"]["mean"] == pytest.approx(0.0, abs=1e-9)
@@ -109,15 +125,37 @@ def test_import_by_hand_from_the_parts_or_the_archive(tmp_path, monkeypatch):
     root = ps.write_set(tmp_path / "set", ps.DEFAULT_SAMPLES[:1])
     archive = tmp_path / "dl" / "rigidbench-eval-v1.1.tar.gz"
     archive.parent.mkdir()
-    ps.make_archive(root, archive)
+    md5 = ps.make_archive(root, archive)
+    config = tmp_path / "config"  # the description of this archive (its MD5): import checks the archive against it
+    write_description(config, "test-eval-v0.1", name="test-eval", version="0.1", archive=archive.name,
+                      data=archive.read_bytes(), md5=md5, part_bytes=15_000, url="http://127.0.0.1:9/{part}")
     monkeypatch.chdir(tmp_path)
-    assert main(["import", str(archive), "--data", "a"]) == 0
+    described = ["--config", str(config), "import"]
+    assert main(described + [str(archive), "--data", "a", "--dataset", "test-eval"]) == 0
     assert (tmp_path / "a" / "eval" / "00000" / "tracks.npz").is_file()
     names = [name for name, _ in ps.split_parts(archive, tmp_path / "parts", 15_000)]
     assert len(names) >= 3
-    assert main(["import", str(tmp_path / "parts"), "--data", "b"]) == 0
-    assert main(["import", str(tmp_path / "set"), "--data", "c"]) == 0
-    assert Sample(tmp_path / "b" / "eval" / "00000").metadata["source"]["md5_verified"] is False
+    assert main(described + [str(tmp_path / "parts"), "--data", "b", "--dataset", "test-eval"]) == 0
+    assert main(described + [str(tmp_path / "set"), "--data", "c", "--dataset", "test-eval"]) == 0
+    source = Sample(tmp_path / "b" / "eval" / "00000").metadata["source"]
+    assert source["verified"] is True and "import checked the MD5" in source["verification"]
+    source = Sample(tmp_path / "c" / "eval" / "00000").metadata["source"]
+    assert source["verified"] is False and "extracted folder" in source["verification"]
+    # a result on an unverified set is never official, and the report's header says so
+    assert main(["predict", "reference", "--data", "c", "--out", "predictions/c"]) == 0
+    assert main(["evaluate", "predictions/c", "--data", "c", "--perception", "gt", "--out", "runs/c"]) == 0
+    results = json.loads((tmp_path / "runs" / "c" / "results.json").read_text())
+    assert results["dataset"]["verified"] is False and results["official"] is False
+    reason = next(r for r in results["why_not_official"] if "MD5" in r)
+    assert "test-eval 0.1 was not checked against its published MD5" in reason
+    page = build_report([tmp_path / "runs" / "c"], tmp_path / "report", resamples=100, seed=0, examples=0)
+    header = html.unescape(page.read_text().split("<h2")[0])
+    assert "reference set test-eval 0.1 (MD5 not verified)" in header and reason in header
+    # a results.json written before verification was recorded may say official: the report does not repeat it
+    results.update(official=True, why_not_official=[], dataset={"dataset": "test-eval", "version": "0.1", "md5": md5})
+    (tmp_path / "runs" / "c" / "results.json").write_text(json.dumps(results))
+    info, _ = read_run(tmp_path / "runs" / "c")
+    assert info.official is False and "not checked against its published MD5" in info.why_not_official[0]
     digest = {d: hashlib.sha256((tmp_path / d / "eval" / "00000" / "tracks.npz").read_bytes()).hexdigest()
               for d in "abc"}
     assert len(set(digest.values())) == 1

@@ -134,7 +134,7 @@ def test_unipc_stays_a_named_option_and_is_recorded_as_a_difference():
     assert not np.array_equal(small.frames, euler.frames)  # two steps of each: the samplers differ
     assert predictor.settings(ctx)["sampler"] == "unipc"
     info = predictor.generation_info(ctx)
-    assert info["sampler"] == "unipc" and info["differs_from_release"] == {"sampler": ["unipc", "flow-euler"]}
+    assert info["sampler"] == "unipc" and info["differs_from_release"]["sampler"] == ["unipc", "flow-euler"]
     with pytest.raises(UserError, match="option sampler must be one of flow-euler, unipc, got 'ddim'"):
         predictor.settings(ctx_for(sampler="ddim"))
 
@@ -226,3 +226,169 @@ def test_a_stored_tiny_model_video_round_trips_without_chroma_loss(tmp_path):
     # the model's colour detail is there to lose: 4:2:0 at crf 18 (the earlier storage) does not keep it
     write_prediction(type(pred)(frames=pred.frames, times_s=pred.times_s, lossless=False), tmp_path, "00004")
     assert not np.array_equal(read_video(tmp_path / "00004.mp4").frames, pred.frames)
+
+
+# -- 4. DiffSynth's numerics: recipe=release (issue 32, item 13) -------------------------------------------------
+
+RELEASE = {"timestep_dtype": "bfloat16", "update_dtype": "bfloat16", "vae_codec": "diffsynth-tiled"}
+
+
+def test_the_release_recipe_sets_diffsynths_numerics_and_is_recorded():
+    from rigidbench.predictors.options import model_options
+
+    predictor = PREDICTORS["wan-2.2"].create()
+    ours, release = ctx_for(3), ctx_for(3, **model_options(PREDICTORS["wan-2.2"], "recipe=release"))
+    assert "numerics" not in predictor.settings(ours)  # the settings (and keys) of earlier folders are unchanged
+    assert predictor.settings(release)["numerics"] == RELEASE
+    assert predictor.settings(ctx_for(3, **RELEASE)) == predictor.settings(release)  # the same videos, one key
+    info = predictor.generation_info(release)
+    assert info["recipe"] == "release" and info["numerics"] == RELEASE and "differs_from_release" not in info
+    assert "bfloat16" in info["numerics_described"]["timestep_dtype"]
+    mixed = ctx_for(3, recipe="release", update_dtype="float32")  # an option beside the recipe overrides it
+    assert predictor.numerics(mixed) == {**RELEASE, "update_dtype": "float32"}
+    assert predictor.generation_info(mixed)["differs_from_release"] == {"update_dtype": ["float32", "bfloat16"]}
+    with pytest.raises(UserError, match="needs sampler flow-euler, got unipc"):
+        predictor.settings(ctx_for(recipe="release", sampler="unipc"))
+    with pytest.raises(UserError, match="give one of them"):
+        predictor.settings(ctx_for(vae_codec="diffsynth-tiled", tiled_vae=True))
+    with pytest.raises(UserError, match="must be one of ours, release"):
+        model_options(PREDICTORS["wan-2.2"], "recipe=diffsynth")
+
+
+def test_release_timesteps_reach_the_transformer_rounded_to_bfloat16():
+    pipe = tiny.tiny_wan()
+    predictor = PREDICTORS["wan-2.2"].create()
+    size = {**WAN_SIZE, "height": 32, "width": 32, "steps": 50, "guidance_scale": 1.0}  # one call per step
+    ctx = ctx_for(3, pipeline=pipe, timestep_dtype="bfloat16", **size)
+    predictor.pipeline(ctx)  # loads and configures: the rounding hook comes first
+    seen, smallest = timesteps_seen(pipe), []
+    pipe.transformer.register_forward_pre_hook(
+        lambda module, args, kwargs: smallest.append(float(kwargs["timestep"].min())), with_kwargs=True)
+    predictor.predict(tiny_sample(), ctx)
+    predictor.close()
+    expected = diffsynth_wan_schedule(50)[1].bfloat16().float().numpy()  # DiffSynth: timestep.to(bfloat16)
+    assert np.array_equal(np.float32(seen), expected) and seen[1] == 996.0  # 995.93 reaches the model as 996
+    assert set(smallest) == {0.0}  # the pinned first slot still sees 0
+    seen.clear()
+    predictor.predict(tiny_sample(), ctx_for(3, pipeline=pipe, **{**size, "steps": 2}))  # ours: the hook is gone
+    predictor.close()
+    assert seen == [1000.0, pytest.approx(2500 / 3, abs=1e-3)]  # 833.33 (bfloat16: 832)
+
+
+def test_the_bfloat16_update_is_diffsynths_euler_step_on_bfloat16_latents():
+    """FlowMatchScheduler.step on bfloat16 latents, written with torch's own bfloat16 arithmetic."""
+    from rigidbench.predictors.wan_sampler import flow_euler_scheduler
+
+    scheduler = flow_euler_scheduler()
+    scheduler.update_dtype = "bfloat16"
+    scheduler.set_timesteps(50)
+    sigmas, _ = diffsynth_wan_schedule(50)
+    generator = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 4, 2, 3, 3, generator=generator)
+    expected = x.bfloat16()  # DiffSynth: the noise cast to the pipeline's dtype
+    for i, t in enumerate(scheduler.timesteps):
+        v = torch.randn(x.shape, generator=generator).bfloat16()
+        x = scheduler.step(v, t, x, return_dict=False)[0]
+        sigma_next = sigmas[i + 1] if i + 1 < len(sigmas) else torch.tensor(0.0)
+        expected = expected + v * (sigma_next - sigmas[i])
+    assert x.dtype == torch.bfloat16 and torch.equal(x, expected)  # bit for bit
+    scheduler.update_dtype = "float32"
+    scheduler.set_timesteps(50)
+    assert scheduler.step(v, scheduler.timesteps[0], x.float(), return_dict=False)[0].dtype == torch.bfloat16
+    assert scheduler.step(v.float(), scheduler.timesteps[1], x.float(), return_dict=False)[0].dtype == torch.float32
+
+
+def test_diffsynths_tiles_at_the_papers_size():
+    """1280x704: latents 44 x 80 -> rows from 0 and 15, columns from 0, 26 and 52 (6 tiles, the last of each
+    cut at the edge); the first frame's 704 x 1280 pixels in tiles of 480 x 832 from 0, 240 / 0, 416, 832."""
+    from rigidbench.predictors.wan_diffsynth import TILE_SIZE, TILE_STRIDE, tile_starts
+
+    assert tile_starts(44, TILE_SIZE[0], TILE_STRIDE[0]) == [0, 15]
+    assert tile_starts(80, TILE_SIZE[1], TILE_STRIDE[1]) == [0, 26, 52]
+    assert tile_starts(704, 16 * TILE_SIZE[0], 16 * TILE_STRIDE[0]) == [0, 240]
+    assert tile_starts(1280, 16 * TILE_SIZE[1], 16 * TILE_STRIDE[1]) == [0, 416, 832]
+    assert tile_starts(22, 30, 15) == [0]  # 640x352 fits one tile: nothing is blended
+
+
+def reference_blend(tiles, out_shape, border):
+    """Written from DiffSynth's description, in float64: each tile's output times a weight that is 1 but for
+    a linear ramp (1 .. b) / b over the b cells of each side facing another tile; summed and normalised.
+    ``tiles``: [(top, left, first_row, last_row, first_col, last_col, output (C,T,h,w))]."""
+    values, weight = np.zeros(out_shape), np.zeros((1,) + out_shape[1:])
+
+    def axis(n, b, first, last):
+        i = np.arange(n, dtype=np.float64)
+        w = np.ones(n)
+        if not first:
+            w = np.minimum(w, (i + 1) / b)
+        if not last:
+            w = np.minimum(w, (n - i) / b)
+        return w
+
+    for top, left, first_r, last_r, first_c, last_c, out in tiles:
+        h, w = out.shape[-2:]
+        m = np.minimum(axis(h, border[0], first_r, last_r)[:, None], axis(w, border[1], first_c, last_c)[None, :])
+        values[:, :, top:top + h, left:left + w] += out * m
+        weight[:, :, top:top + h, left:left + w] += m
+    return values / weight
+
+
+def test_tiled_decode_and_encode_blend_tiles_as_diffsynth():
+    from rigidbench.predictors.wan_diffsynth import TiledEncoder, tiled_decode
+
+    vae = tiny.tiny_wan().vae
+    g = torch.Generator().manual_seed(0)
+    latents = torch.randn(1, 48, 2, 4, 6, generator=g)
+    with torch.no_grad():
+        ours = tiled_decode(vae, latents, size=(2, 4), stride=(1, 2))  # rows from 0, 1, 2; columns from 0, 2
+        whole = vae.decode(latents).sample
+        tiles = [(16 * r, 16 * c, r == 0, r + 2 >= 4, c == 0, c + 4 >= 6,
+                  vae.decode(latents[:, :, :, r:r + 2, c:c + 4]).sample[0].double().numpy())
+                 for r in (0, 1, 2) for c in (0, 2)]
+    expected = np.clip(reference_blend(tiles, (3, 5, 64, 96), (16, 32)), -1, 1)
+    assert ours.shape == whole.shape == (1, 3, 5, 64, 96)
+    assert np.allclose(ours[0].numpy(), expected, atol=1e-5)
+    assert float((ours - whole).abs().max()) > 1e-3  # the tiles see less context than the whole: seams differ
+
+    video = torch.rand(1, 3, 1, 128, 128, generator=g) * 2 - 1
+    encoder = TiledEncoder(vae, size=(4, 4), stride=(2, 2))  # 64-pixel tiles from 0, 32, 64 on both axes
+    with torch.no_grad():
+        blended = encoder(video).latents
+        tiles = [(p // 16, q // 16, p == 0, p + 64 >= 128, q == 0, q + 64 >= 128,
+                  vae.encode(video[:, :, :, p:p + 64, q:q + 64]).latent_dist.mode()[0].double().numpy())
+                 for p in (0, 32, 64) for q in (0, 32, 64)]
+    assert blended.shape == (1, 48, 1, 8, 8)
+    assert np.allclose(blended[0].numpy(), reference_blend(tiles, (48, 1, 8, 8), (2, 2)), atol=1e-5)
+    TiledEncoder.install(vae)
+    assert isinstance(vae.encode, TiledEncoder)
+    TiledEncoder.remove(vae)
+    assert "encode" not in vae.__dict__  # the class's encode again
+
+
+def test_diffsynth_tiled_codec_within_one_tile_changes_only_the_uint8_conversion():
+    """At a size inside one tile the tiled encode and decode are the untiled ones, so the frames differ from
+    ours only by DiffSynth's conversion: ((x + 1) x 127.5) truncated where ours rounds, at most one level."""
+    from rigidbench.predictors.wan_diffsynth import diffsynth_to_uint8
+
+    pipe, predictor = tiny.tiny_wan(), PREDICTORS["wan-2.2"].create()
+    ours = predictor.predict(tiny_sample(), ctx_for(4, pipeline=pipe, **WAN_SIZE))
+    predictor.close()
+    tiled = predictor.predict(tiny_sample(), ctx_for(4, pipeline=pipe, vae_codec="diffsynth-tiled", **WAN_SIZE))
+    predictor.close()
+    diff = ours.frames.astype(int) - tiled.frames.astype(int)
+    assert tiled.frames.shape == ours.frames.shape and set(np.unique(diff)) == {0, 1}
+    assert tiled.metadata["numerics"]["vae_codec"] == "diffsynth-tiled" and "encode" not in pipe.vae.__dict__
+    x = torch.tensor([-1.0, -0.2, 0.0, 0.5, 0.999, 1.0]).view(1, 1, 6, 1, 1).expand(1, 3, 6, 1, 1)
+    assert diffsynth_to_uint8(x)[:, 0, 0, 0].tolist() == [0, 102, 127, 191, 254, 255]  # floor((x + 1) x 127.5)
+    assert diffsynth_to_uint8(x.bfloat16())[:, 0, 0, 0].tolist() == [0, 102, 127, 191, 255, 255]  # bfloat16 rounds
+
+
+def test_the_release_recipe_generates_end_to_end_in_bfloat16():
+    pipe, predictor = tiny.tiny_wan().to(torch.bfloat16), PREDICTORS["wan-2.2"].create()
+    ours = predictor.predict(tiny_sample(), ctx_for(2, pipeline=pipe, **WAN_SIZE))
+    predictor.close()
+    release = predictor.predict(tiny_sample(), ctx_for(2, pipeline=pipe, recipe="release", **WAN_SIZE))
+    predictor.close()
+    assert release.frames.dtype == np.uint8 and release.frames.shape == ours.frames.shape == (5, 64, 96, 3)
+    assert release.metadata["numerics"] == RELEASE and not np.array_equal(release.frames, ours.frames)
+    assert pipe.scheduler.update_dtype == "float32" and not pipe.transformer._forward_pre_hooks  # undone by close

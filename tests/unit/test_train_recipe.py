@@ -49,7 +49,8 @@ def test_the_paper_configs_follow_the_release_where_the_paper_is_silent():
         objective = (cfg.objective_clean_slot_timestep, cfg.objective_draws, cfg.objective_dtype)
         assert objective == ("noisy", "shared", "bfloat16")
         assert cfg.schedule_first_step == 0
-        assert cfg.master_weights == "float32"  # the paper states "bf16 mixed precision"
+        # the reproduction recipe: the release trained bf16 weights under Lightning's "bf16-mixed"; tiny keeps float32
+        assert cfg.master_weights == ("float32" if name == "tiny" else "bfloat16")
         assert cfg.keep_training_states == 1
     cfg = tiny("text.prompt=task+suffix", "text.padding=zeros", "objective.clean_slot_timestep=zero",
                "objective.draws=per_rank", "objective.dtype=float32", "schedule.first_step=1",
@@ -150,6 +151,84 @@ def test_bfloat16_master_weights_train_in_bfloat16(mode):
         model = build_model(tiny(f"mode={mode}", f"master_weights={master}"), info, use_bf16=False)
         trainable = [p for p in model.parameters() if p.requires_grad]
         assert trainable and all(p.dtype == dtype for p in trainable)
+
+
+def saved_state(run_dir, step):
+    """{key: dtype} of every tensor in a run's resumable state at ``step`` (torch.distributed.checkpoint)."""
+    import torch.distributed.checkpoint as dcp
+
+    from rigidbench.train import checkpoint as ckpt
+
+    meta = dcp.FileSystemReader(str(run_dir / ckpt.STATE_DIR / f"step-{step}" / "dcp")).read_metadata()
+    return {k: v.properties.dtype for k, v in meta.state_dict_metadata.items() if hasattr(v, "properties")}
+
+
+def bf16_half_spacing(w):
+    """Half the distance from each bfloat16 value to its neighbour away from zero: an update smaller than this
+    rounds back to the same value (8 significant bits)."""
+    exponent = torch.floor(torch.log2(w.float().abs().clamp_min(2.0 ** -126)))
+    return 2.0 ** (exponent - 8)
+
+
+@pytest.mark.filterwarnings("ignore:torch.distributed is disabled")
+def test_the_reproduction_recipe_trains_weights_and_adamw_state_in_bfloat16(tmp_path):
+    """The packaged full configuration (the published run's recipe) on the tiny model: one real update at the
+    recipe's lr 2e-5 keeps the weights and both AdamW moments in bfloat16, and every weight whose bfloat16
+    spacing exceeds twice the update is left exactly unchanged."""
+    from rigidbench.train.distributed import DistInfo
+    from rigidbench.train.trainer import build_model, train
+
+    recipe = load_train_config("full")
+    assert recipe.master_weights == "bfloat16" and recipe.optimizer_lr == 2e-5
+    path, _ = synthetic_cache(tmp_path / "cache")
+    cfg = tiny("mode=full", f"master_weights={recipe.master_weights}", f"optimizer.lr={recipe.optimizer_lr}",
+               "schedule.warmup_steps=0", "schedule.first_step=1", "max_steps=1", "checkpoint_every=1")
+    train(cfg, path, tmp_path / "run", device="cpu", progress=False)
+    dtypes = saved_state(tmp_path / "run", 1)
+    weights = {k: d for k, d in dtypes.items() if k.startswith("model.")}
+    moments = {k: d for k, d in dtypes.items() if k.endswith((".exp_avg", ".exp_avg_sq"))}
+    assert weights and len(moments) == 2 * len(weights)
+    assert set(weights.values()) == set(moments.values()) == {torch.bfloat16}
+
+    import torch.distributed.checkpoint as dcp
+
+    info = DistInfo(rank=0, world_size=1, local_rank=0, device=torch.device("cpu"), backend=None)
+    initial = {n: p.detach().clone() for n, p in build_model(cfg, info, use_bf16=False).named_parameters()
+               if p.requires_grad}  # the trainer's seeded initial weights
+    after = {"model": {n: torch.empty_like(p) for n, p in initial.items()}}
+    dcp.load(after, checkpoint_id=str(tmp_path / "run" / "training_state" / "step-1" / "dcp"), no_dist=True)
+    w0 = torch.cat([initial[n].flatten() for n in initial])
+    w1 = torch.cat([after["model"][n].flatten() for n in initial])
+    unchanged = (w1 == w0).float().mean().item()
+    lr = recipe.optimizer_lr * lr_factor(1, 0, cfg.schedule_horizon_steps)  # Adam's first update is lr x sign(g)
+    predicted = (bf16_half_spacing(w0) > lr).float().mean().item()
+    assert 0 < unchanged < 1 and unchanged == pytest.approx(predicted, abs=0.01)
+
+
+@pytest.mark.parametrize("std, expected", [(0.01, 0.435), (0.05, 0.876)])
+def test_at_lr_2e_5_most_bfloat16_weight_updates_round_away(std, expected):
+    """The 43-88% of the issue: one AdamW step of the full recipe (lr 2e-5, weight decay 0.01) on weights drawn
+    N(0, std^2). In bfloat16 a weight stays put where half its spacing exceeds the update, i.e. |w| >= 2^-7:
+    P(|w| >= 2^-7) = 0.435 for std 0.01 and 0.876 for std 0.05. With float32 masters every weight moves."""
+    from rigidbench.train.trainer import make_optimizer
+
+    recipe = load_train_config("full")
+    g = torch.Generator().manual_seed(0)
+    w = std * torch.randn(200_000, generator=g)
+    grad = torch.randn(200_000, generator=g)
+    fractions = {}
+    for dtype in (torch.bfloat16, torch.float32):
+        p = torch.nn.Parameter(w.to(dtype))
+        before = p.detach().clone()
+        p.grad = grad.to(dtype)
+        optimizer, _ = make_optimizer([p], recipe)
+        optimizer.step()
+        assert all(s.dtype == dtype for k, s in optimizer.state[p].items() if k != "step")
+        fractions[dtype] = (p.detach() == before).float().mean().item()
+    predicted = (bf16_half_spacing(w.bfloat16()) > recipe.optimizer_lr).float().mean().item()
+    assert fractions[torch.bfloat16] == pytest.approx(predicted, abs=0.005)
+    assert fractions[torch.bfloat16] == pytest.approx(expected, abs=0.01)
+    assert fractions[torch.float32] < 1e-3
 
 
 def test_a_tiny_run_with_the_release_recipe_keeps_only_the_newest_state(tmp_path):

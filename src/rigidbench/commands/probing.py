@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..argtypes import existing_folder, non_negative_int, output_folder, positive_int
 from ..probe.commands import INTERVENTION_TAUS, PAPER_TAUS
+from ..probe.recipe import CHOICES, INLP_PROCEDURES, RECIPE_NAMES
 from ..train.config import MODEL_SPECS
 from . import Command
 
@@ -12,32 +14,54 @@ from . import Command
 def _extract_arguments(p) -> None:
     p.add_argument("--backbone", required=True, metavar="base|random|CHECKPOINT",
                    help="base (pretrained), random (re-initialised DiT) or a `rigidbench train` checkpoint directory")
-    p.add_argument("--cache", type=Path, required=True, help="the cache `rigidbench preprocess` wrote")
-    p.add_argument("--data", type=Path, required=True, help="the bundles the cache was made from (DIR/train)")
-    p.add_argument("--out", type=Path, required=True, help="activation store (created; a rerun skips done clips)")
+    p.add_argument("--cache", type=existing_folder, required=True, help="the cache `rigidbench preprocess` wrote")
+    p.add_argument("--data", type=existing_folder, required=True,
+                   help="the bundles the cache was made from (DIR/train)")
+    p.add_argument("--out", type=output_folder, required=True,
+                   help="activation store (created; a rerun skips done clips)")
     p.add_argument("--model", choices=tuple(MODEL_SPECS), help="default: the cache's model")
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
     p.add_argument("--taus", default=PAPER_TAUS, help=f"schedule fractions along the training schedule, 0.9 the "
                                                       f"least noisy (default {PAPER_TAUS})")
-    p.add_argument("--random-seed", type=int, default=0,
+    p.add_argument("--random-seed", type=non_negative_int, default=0,
                    help="seed of --backbone random's re-initialisation (default 0, the release's); recorded")
+    _conditioning_arguments(p, "default: ours (the options' first values)")
     p.add_argument("--chunk-size", type=int, default=64,
                    help="ignored, kept so older scripts run: the store now keeps one file pair per clip")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _conditioning_arguments(p, default: str) -> None:
+    """--recipe and one option per conditioning choice (docs/probing.md, "Recipes"); unset options take the
+    recipe's value. The first value of each choice is ours, the second the release's."""
+    p.add_argument("--recipe", choices=RECIPE_NAMES,
+                   help=f"ours, or release: every choice of the authors' release ({default}); recorded")
+    p.add_argument("--prompt", choices=CHOICES["prompt"], help="the evaluation prompt with the paper's suffix, or "
+                                                              "the task prompt alone (the release)")
+    p.add_argument("--text-padding", choices=CHOICES["padding"],
+                   help="text context after the prompt's tokens: zeros, or UMT5's outputs (the release)")
+    p.add_argument("--clean-slot-timestep", choices=CHOICES["clean_slot_timestep"],
+                   help="timestep of the clean slot 0's tokens: 0, or the noisy t on every token (the release)")
+    p.add_argument("--dtype", choices=CHOICES["dtype"], help="the transformer's forward precision")
+    p.add_argument("--objective-dtype", choices=CHOICES["objective_dtype"],
+                   help="bfloat16 (the release): timesteps rounded to bfloat16, bfloat16 noised latent and target")
+    p.add_argument("--noise", choices=CHOICES["noise"],
+                   help="noise drawn per clip, or one tensor shared by every clip (the release)")
+
+
 def _fit_arguments(p) -> None:
-    p.add_argument("--acts", type=Path, required=True, help="the store `probe extract` wrote")
-    p.add_argument("--out", type=Path, required=True, help="directory for scores.csv (a rerun skips done cells)")
+    p.add_argument("--acts", type=existing_folder, required=True, help="the store `probe extract` wrote")
+    p.add_argument("--out", type=output_folder, required=True,
+                   help="directory for scores.csv (a rerun skips done cells)")
     p.add_argument("--targets", help="comma-separated targets (default: all: position, contact, orientation, ...)")
     p.add_argument("--probes", default="linear,mlp", help="linear,mlp (default both)")
     p.add_argument("--blocks", help="comma-separated block indices (default: all)")
     p.add_argument("--taus", help="comma-separated schedule fractions (default: all extracted)")
-    p.add_argument("--epochs", type=int, default=20)
-    p.add_argument("--batch-size", type=int, default=4096)
+    p.add_argument("--epochs", type=positive_int, default=20)
+    p.add_argument("--batch-size", type=positive_int, default=4096)
     p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--standardize", action="store_true",
                    help="z-score activations and continuous targets with training statistics (ours; the release, "
                         "and the default, fit raw values)")
@@ -49,29 +73,36 @@ def _fit_arguments(p) -> None:
 
 
 def _intervene_arguments(p) -> None:
-    p.add_argument("--acts", type=Path, required=True, help="the store `probe extract` wrote (its backbone is used)")
-    p.add_argument("--cache", type=Path, required=True, help="the cache the store was extracted from")
-    p.add_argument("--out", type=Path, required=True, help="output directory (a rerun skips done clips)")
+    p.add_argument("--acts", type=existing_folder, required=True,
+                   help="the store `probe extract` wrote (its backbone is used)")
+    p.add_argument("--cache", type=existing_folder, required=True, help="the cache the store was extracted from")
+    p.add_argument("--out", type=output_folder, required=True, help="output directory (a rerun skips done clips)")
     p.add_argument("--taus", default=INTERVENTION_TAUS, help=f"schedule fractions (default {INTERVENTION_TAUS})")
-    p.add_argument("--clips", type=int, default=100, help="the first N clips by id (default 100)")
+    p.add_argument("--clips", type=positive_int, default=100, help="the first N clips by id (default 100)")
     p.add_argument("--clip-split", choices=("all", "train"), default="all",
                    help="choose them among all the store's clips (default, the release's) or its training split")
     p.add_argument("--blocks", help="comma-separated block indices (default: all)")
-    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples over clips (default 20,000)")
+    p.add_argument("--resamples", type=positive_int, default=20000,
+                   help="bootstrap resamples over clips (default 20,000)")
     p.add_argument("--full-readout", choices=("resume", "hook"), default="resume",
                    help="resume: run the remaining blocks from the recorded block output (default); hook: a "
                         "forward hook and a whole forward pass (same numbers, about twice the cost)")
     p.add_argument("--inlp-dtype", choices=("float64", "float32"), default="float64",
-                   help="precision of INLP's Gram matrix and solves (default float64, as the release's ridge)")
+                   help="precision of the stable INLP's Gram matrix and solves (default float64, as the release's "
+                        "ridge)")
+    p.add_argument("--inlp-procedure", choices=INLP_PROCEDURES,
+                   help="stable (ours) or release (the release's float32 steps, literally); default: the recipe's")
+    _conditioning_arguments(p, "default: the recipe and conditioning the store was extracted with")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available; INLP runs "
                                                        "there too)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _report_arguments(p) -> None:
-    p.add_argument("--probes", type=Path, nargs="+", help="`probe fit` output directories (one per backbone)")
-    p.add_argument("--intervene", type=Path, help="the `probe intervene` output directory")
-    p.add_argument("--out", type=Path, required=True, help="report directory (index.html)")
+    p.add_argument("--probes", type=existing_folder, nargs="+",
+                   help="`probe fit` output directories (one per backbone)")
+    p.add_argument("--intervene", type=existing_folder, help="the `probe intervene` output directory")
+    p.add_argument("--out", type=output_folder, required=True, help="report directory (index.html)")
 
 
 COMMANDS = (Command("probe", "probe Wan's transformer for physical state and remove position subspaces "

@@ -214,6 +214,10 @@ def load_dataset(name_or_id: str | None = None, extra_dirs: Iterable[str | Path]
     known = sorted(set(table) | {d.name for d in table.values()})
     close = difflib.get_close_matches(key, known, n=1)
     hint = f" (did you mean '{close[0]}'?)" if close else ""
-    raise UnknownNameError(f"unknown dataset '{key}'{hint}; known datasets: {', '.join(known) or 'none'} "
-                           "(a dataset is a file configs/datasets/<id>.yaml in the packaged configs or a --config "
-                           "directory)")
+    dirs = config_dirs(extra_dirs)
+    looked = ", ".join(str(d / "datasets") for d in dirs)
+    stray = [d / f"{key}.yaml" for d in dirs[1:] if (d / f"{key}.yaml").is_file()]
+    moved = f"; {stray[0]} is not read there: move it to {stray[0].parent / 'datasets' / stray[0].name}" if stray else ""
+    raise UnknownNameError(f"unknown dataset '{key}'{hint}; known datasets: {', '.join(known) or 'none'}; looked "
+                           f"for {key}.yaml in {looked} (a dataset is a file DIR/datasets/<id>.yaml, DIR the "
+                           f"packaged configs or a `rigidbench --config DIR` directory){moved}")

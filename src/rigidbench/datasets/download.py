@@ -8,12 +8,18 @@ Everything lives in ``<data>/.download/<id>/``::
     extracted.tmp/   an extraction in progress (removed and redone if a run stopped during it)
     extracted/       the complete extraction (renamed from extracted.tmp)
     complete.json    id, version, md5, time: the download is done (written last, atomically)
+    imported.json    the samples a complete import made (``rigidbench download``, datasets/commands.py)
 
 A run stopped at any moment (mid-part, between parts, during the MD5, during the extraction, before or while
 the parts are deleted) is finished by running it again, without fetching what is already on disk. Only one
 run at a time may use the folder (a lock file). Network failures (connection errors, timeouts, a server that
 trickles below ``min_bytes_per_s``, HTTP 429 and 5xx) are retried with exponential backoff, a bounded number
 of times per part; then the error names the part and its URL and says to rerun to resume.
+
+The free-disk check counts, at the fullest moment, what is still to download, the extraction and the import's
+own files (up to the archive's size, written after the parts are deleted unless they are kept). Once the
+download is complete, ``extracted/`` may be deleted (the imported bundles hold their own files): nothing is
+fetched again for it (``ExtractionDeletedError`` says how to download afresh; kept parts are extracted again).
 """
 
 from __future__ import annotations
@@ -30,11 +36,13 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
 from ..errors import RigidBenchError, UserError
+from ..extras import require
 from ..jsonio import write_json
+from .datadir import format_bytes, hold_lock, prepare_data_dir
 from .describe import DatasetDescription, DatasetPart
 from .extract import safe_extract
 
@@ -63,6 +71,11 @@ class DownloadBusyError(UserError):
     """Another run is downloading into the same folder."""
 
 
+class ExtractionDeletedError(UserError):
+    """A finished download whose extraction was deleted (and whose parts are gone): never fetched again
+    silently."""
+
+
 @dataclass(frozen=True)
 class TransferSettings:
     """Network and disk limits of a download (the defaults suit a large archive over a slow link)."""
@@ -77,6 +90,14 @@ class TransferSettings:
     throughput_window_s: float = 60.0
     disk_margin_bytes: int = 512 * 1024 * 1024  # free space kept beyond the download and the extraction
     disk_margin_fraction: float = 0.02  # ... or this fraction of the archive, whichever is larger
+    #: what the import writes (its own depth, masks, tracks; frames and video are hard-linked), as a fraction of
+    #: the archive: an upper bound (it rewrites at most what the archive holds besides frames and video)
+    import_fraction: float = 1.0
+
+
+#: what the import measured (benchmarks/published_import.py; 2-core machine, CPU time), said by the disk check
+IMPORT_MEASURED = ("on a synthetic paper-size sample (1280x704, 49 frames) the import wrote 10% of the sample's "
+                   "bytes in 4.8 s of CPU")
 
 
 def download_dir(desc: DatasetDescription, data: str | Path) -> Path:
@@ -113,6 +134,7 @@ def download_dataset(desc: DatasetDescription, data: str | Path, *, keep_archive
     skips the MD5; ``client`` is an ``httpx.Client`` to use (else one is made, honouring proxy variables).
     Raises DiskSpaceError, DownloadError, ChecksumError, extract.ArchiveError, DownloadBusyError."""
     settings = settings or TransferSettings()
+    prepare_data_dir(data)
     root = download_dir(desc, data)
     root.mkdir(parents=True, exist_ok=True)
     extracted = extracted_dir(desc, data)
@@ -122,10 +144,15 @@ def download_dataset(desc: DatasetDescription, data: str | Path, *, keep_archive
             if not marker.get("archive_kept"):
                 _delete_parts(desc, root)  # finishes a deletion that was interrupted
             return extracted
+        if marker is not None and not _parts_on_disk(desc, root):
+            raise ExtractionDeletedError(
+                f"{extracted}: deleted after the download finished, and its parts are gone; nothing is fetched "
+                f"again on its own. To download {desc.id} afresh ({_size(desc.size_bytes)}), delete "
+                f"{root / MARKER} and run again")
         if extracted.is_dir():  # extracted, but stopped before the marker was written
             verified = _verified_record_matches(desc, root)
-        else:
-            _check_disk(desc, root, settings)
+        else:  # (with a marker: the extraction was deleted but the parts were kept: extracted again from them)
+            _check_disk(desc, root, settings, keep_archive)
             _fetch_parts(desc, root, client, settings, progress)
             paths = [root / p.name for p in desc.parts]
             verified = _verify(desc, root, progress) if verify else _verified_record_matches(desc, root)
@@ -193,12 +220,7 @@ def _fetch_parts(desc: DatasetDescription, root: Path, client: Any, settings: Tr
 
 
 def _httpx():
-    try:
-        import httpx
-    except ImportError:
-        raise UserError("downloading a dataset needs httpx: pip install httpx (or pip install 'rigidbench[models]')") \
-            from None
-    return httpx
+    return require("httpx", "downloading a dataset")
 
 
 def _make_client(settings: TransferSettings):
@@ -340,12 +362,7 @@ def _content_range(value: str | None) -> tuple[int, int | None]:
 # Disk, verification, clean-up
 
 
-def _size(n: float) -> str:
-    for unit in ("bytes", "kB", "MB", "GB", "TB"):
-        if abs(n) < 1000 or unit == "TB":
-            return f"{n:,.0f} {unit}" if unit == "bytes" else f"{n:,.1f} {unit}"
-        n /= 1000
-    return ""  # unreachable
+_size = format_bytes
 
 
 def _tree_bytes(path: Path) -> int:
@@ -357,9 +374,15 @@ def _tree_bytes(path: Path) -> int:
     return total
 
 
-def _check_disk(desc: DatasetDescription, root: Path, settings: TransferSettings) -> None:
-    """Refuse to start when the disk cannot hold what is still to download plus the extraction (taken as
-    the archive's size) plus a margin."""
+def _parts_on_disk(desc: DatasetDescription, root: Path) -> bool:
+    """Every part is on disk, complete."""
+    return all((root / p.name).is_file() and (root / p.name).stat().st_size == p.size_bytes for p in desc.parts)
+
+
+def _check_disk(desc: DatasetDescription, root: Path, settings: TransferSettings, keep_archive: bool = False) -> None:
+    """Refuse to start when the disk cannot hold, at its fullest, what is still to download, the extraction
+    (taken as the archive's size) and the import's own files (``settings.import_fraction`` of the archive,
+    written after the parts are deleted unless they are kept), plus a margin."""
     to_fetch = 0
     for part in desc.parts:
         final, tmp = root / part.name, root / f"{part.name}.part"
@@ -368,16 +391,21 @@ def _check_disk(desc: DatasetDescription, root: Path, settings: TransferSettings
         have = final.stat().st_size if final.exists() else tmp.stat().st_size if tmp.exists() else 0
         to_fetch += max(part.size_bytes - have, 0)
     extraction = desc.size_bytes
+    imported = int(settings.import_fraction * desc.size_bytes)
+    # the parts are deleted before the import (unless kept): its files then reuse their space first
+    import_extra = imported if keep_archive else max(0, imported - desc.size_bytes)
     margin = max(settings.disk_margin_bytes, int(settings.disk_margin_fraction * desc.size_bytes))
     stale = root / "extracted.tmp"  # removed before extracting again: its space counts as free
     free = shutil.disk_usage(root).free + (_tree_bytes(stale) if stale.exists() else 0)
-    need = to_fetch + extraction + margin
+    need = to_fetch + extraction + import_extra + margin
     if free < need:
         data = root.parent.parent
+        where = "beside the kept parts" if keep_archive else "in the space the deleted parts free"
         raise DiskSpaceError(
             f"not enough free disk space in {data} for {desc.id}: it needs {_size(need)} ({_size(to_fetch)} still to "
-            f"download, {_size(extraction)} to extract, {_size(margin)} to spare) and {_size(free)} is free; free "
-            f"{_size(need - free)} there or choose another --data directory")
+            f"download, {_size(extraction)} to extract, {_size(import_extra)} more to import: the import writes up to "
+            f"{_size(imported)} {where} ({IMPORT_MEASURED}), {_size(margin)} to spare) and {_size(free)} is free; "
+            f"free {_size(need - free)} there or choose another --data directory")
 
 
 def _part_stamps(desc: DatasetDescription, root: Path) -> list[list[Any]]:
@@ -463,20 +491,7 @@ def _bar(total: int, initial: int, desc: str, progress: bool) -> Any:
                 file=sys.stderr, dynamic_ncols=True)
 
 
-@contextlib.contextmanager
-def _lock(root: Path) -> Iterator[None]:
+def _lock(root: Path) -> contextlib.AbstractContextManager[None]:
     """Hold ``<root>/.lock`` for the duration (POSIX advisory lock; no lock where fcntl is missing)."""
-    try:
-        import fcntl
-    except ImportError:  # Windows: no lock
-        yield
-        return
-    with open(root / ".lock", "a") as fh:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise DownloadBusyError(f"another run is downloading into {root}; wait for it to finish") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    return hold_lock(root / ".lock", DownloadBusyError(f"another run is downloading into {root}; wait for it to "
+                                                        "finish"))

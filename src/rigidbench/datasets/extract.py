@@ -21,7 +21,7 @@ import zlib
 from pathlib import Path, PurePosixPath
 from typing import Callable, Sequence
 
-from ..atomic import atomic_dir
+from ..atomic import atomic_dir, umask_mode
 from ..errors import RigidBenchError
 
 log = logging.getLogger(__name__)
@@ -39,14 +39,16 @@ class UnsafeMemberError(ArchiveError):
 
 class ConcatenatedFiles(io.RawIOBase):
     """A read-only file over several files read one after another (the parts of a split archive).
-    ``on_read(n)`` is called with the number of bytes each read returned (for a progress bar)."""
+    ``on_read(n)`` is called with the number of bytes each read returned (for a progress bar); ``digest``
+    (a hashlib object) is updated with every byte read."""
 
-    def __init__(self, paths: Sequence[str | Path], on_read: Callable[[int], None] | None = None):
+    def __init__(self, paths: Sequence[str | Path], on_read: Callable[[int], None] | None = None, digest=None):
         super().__init__()
         self._paths = [Path(p) for p in paths]
         self._index = 0
         self._fh: io.BufferedReader | None = None
         self._on_read = on_read
+        self._digest = digest
         self.position = 0
 
     def readable(self) -> bool:
@@ -60,6 +62,8 @@ class ConcatenatedFiles(io.RawIOBase):
             n = self._fh.readinto(view)
             if n:
                 self.position += n
+                if self._digest is not None:
+                    self._digest.update(view[:n])
                 if self._on_read is not None:
                     self._on_read(n)
                 return n
@@ -106,12 +110,20 @@ def member_path(member: tarfile.TarInfo, archive: str) -> PurePosixPath | None:
     return PurePosixPath(*parts) if parts else None
 
 
+#: what to do about an archive that is not a readable .tar.gz, after a download
+DOWNLOAD_REMEDY = ("the download may be corrupt: verify it (do not pass --no-verify) or delete its parts and "
+                   "download again")
+
+
 def safe_extract(paths: Sequence[str | Path], dest: str | Path, *, archive: str | None = None,
-                 on_read: Callable[[int], None] | None = None) -> Path:
+                 on_read: Callable[[int], None] | None = None, digest=None,
+                 remedy: str = DOWNLOAD_REMEDY) -> Path:
     """Extract the gzip'd tar made of ``paths`` (one archive, or its parts in order) into ``dest``, which must
     not exist: members go to ``<dest>.tmp`` (removed first if an earlier run left it), renamed to ``dest``
-    when all are written. Only regular files (mode 0644) and directories are created. Raises ArchiveError
-    (UnsafeMemberError for an unsafe member) and removes ``<dest>.tmp``; returns ``dest``."""
+    when all are written. Only regular files (mode 0644) and directories are created. ``digest`` (a hashlib
+    object) is updated with every byte of the archive, to its end (the MD5 in the same read). Raises
+    ArchiveError (UnsafeMemberError for an unsafe member; ``remedy`` says what to do about an unreadable
+    archive) and removes ``<dest>.tmp``; returns ``dest``."""
     dest = Path(dest)
     archive = archive or Path(paths[0]).name
     if dest.exists():
@@ -120,15 +132,15 @@ def safe_extract(paths: Sequence[str | Path], dest: str | Path, *, archive: str 
     if tmp.exists():
         log.info("removing %s left by an interrupted extraction", tmp)
     with atomic_dir(dest, tmp=tmp) as root:
-        _extract_members(paths, root, archive, on_read)
+        _extract_members(paths, root, archive, on_read, digest, remedy)
     return dest
 
 
 def _extract_members(paths: Sequence[str | Path], root: Path, archive: str,
-                     on_read: Callable[[int], None] | None) -> None:
+                     on_read: Callable[[int], None] | None, digest, remedy: str) -> None:
     files = 0
     try:
-        with ConcatenatedFiles(paths, on_read) as stream, tarfile.open(fileobj=stream, mode="r|gz") as tar:
+        with ConcatenatedFiles(paths, on_read, digest) as stream, tarfile.open(fileobj=stream, mode="r|gz") as tar:
             for member in tar:
                 rel = member_path(member, archive)
                 if rel is None:
@@ -149,14 +161,16 @@ def _extract_members(paths: Sequence[str | Path], root: Path, archive: str,
                 assert source is not None  # a regular file
                 with open(target, "wb") as out:
                     shutil.copyfileobj(source, out, _CHUNK)
-                os.chmod(target, 0o644)
+                umask_mode(target)  # a member's own mode is not kept: as every other file we write
                 with contextlib.suppress(OverflowError, ValueError, OSError):  # an odd mtime is not worth failing
                     os.utime(target, (member.mtime, member.mtime))
                 files += 1
+            if digest is not None:  # the tar's end marker may come before the file's end: hash the rest
+                buffer = bytearray(_CHUNK)
+                while stream.readinto(buffer):
+                    pass
     except (tarfile.TarError, zlib.error, EOFError) as exc:
-        raise ArchiveError(f"{archive}: not a readable .tar.gz ({type(exc).__name__}: {exc}); the download may be "
-                           "corrupt: verify it (do not pass --no-verify) or delete its parts and download again") \
-            from None
+        raise ArchiveError(f"{archive}: not a readable .tar.gz ({type(exc).__name__}: {exc}); {remedy}") from None
     if not files:
         raise ArchiveError(f"{archive}: the archive holds no files")
 

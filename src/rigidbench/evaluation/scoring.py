@@ -5,12 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..metrics import METRICS, MetricInputs
+from ..metrics.common import PAPER_RULES, EdgeRules
 from ..rotations import quat_to_matrix
 
 
-def metric_inputs(sample, gen_rgb: np.ndarray, perception, nets) -> MetricInputs:
+def metric_inputs(sample, gen_rgb: np.ndarray, perception, nets,
+                  edge_rules: EdgeRules = PAPER_RULES) -> MetricInputs:
     """The MetricInputs of reference ``sample`` and a generated clip gen_rgb (T',H,W,3) uint8 whose
-    ``perception`` is already aligned to the first T' reference timestamps; ``nets``: FeatureNets."""
+    ``perception`` is already aligned to the first T' reference timestamps; ``nets``: FeatureNets;
+    ``edge_rules``: the metrics' edge-case rules (the evaluation protocol's ``edge_rules``)."""
     n = gen_rgb.shape[0]
     active = sample.active_indices
     gt_tracks = sample.tracks
@@ -25,7 +28,7 @@ def metric_inputs(sample, gen_rgb: np.ndarray, perception, nets) -> MetricInputs
         actor_positions_m=sample.trajectory.positions_m[active, :n],
         ref_points_m=tracked_points_world(sample, n),
         bg_tracks=perception.bg_tracks, bg_confidence=perception.bg_confidence,
-        lpips_net=nets.lpips, identity_net=nets.identity)
+        lpips_net=nets.lpips, identity_net=nets.identity, edge_rules=edge_rules)
 
 
 def score_inputs(inputs: MetricInputs, metrics=None) -> dict[str, object]:

@@ -2,7 +2,7 @@
 
 ::
 
-    <id>/frames/00000.png ...   T RGB frames, uint8 H x W x 3
+    <id>/frames/00000.png ...   T RGB frames, uint8 H x W x 3 (imported: the published RGBA PNGs, read without alpha)
     <id>/video.mp4              the frames as H.264 (yuv420p) at the clip's fps
     <id>/masks.npz              masks bool (T,N,H,W); names (N,) str; roles (N,) str ("active"/"passive")
     <id>/depth.npz              depth float32 (T,H,W) m, Cycles Z (along the optical axis), +inf = no surface
@@ -157,7 +157,7 @@ def repair_hint(bundle_dir: str | Path) -> str:
     imported = is_imported(bundle_dir)
     if not imported and not (bundle_dir / SPEC_FILE).is_file():
         try:
-            json.loads((bundle_dir / METADATA_FILE).read_text())
+            jsonio.load_json(bundle_dir / METADATA_FILE, expect=dict)
         except READ_ERRORS:  # metadata unreadable and no scene spec: most likely an imported bundle
             imported = True
     if imported:
@@ -203,13 +203,24 @@ def _read_rgb(path: Path) -> np.ndarray:
         return np.asarray(image.convert("RGB"))
 
 
+def _check_shape(what: str, array: np.ndarray, want: tuple[int | None, ...]) -> np.ndarray:
+    """``array`` when its shape is ``want`` (None: any length); else a ValueError giving both, for the reader's
+    BundleError (a well-formed file of another clip's length or size must not reach the measurements)."""
+    got = tuple(int(n) for n in np.shape(array))
+    if len(got) != len(want) or any(w is not None and g != w for g, w in zip(got, want)):
+        shown = "(" + ", ".join("any" if w is None else str(w) for w in want) + ("," if len(want) == 1 else "") + ")"
+        raise ValueError(f"'{what}' has shape {got}, expected {shown} from {METADATA_FILE} (its frames, resolution "
+                         "and actors)")
+    return array
+
+
 class Sample:
     """Lazy reader over one bundle directory; every property loads its file on first use. A file that
     cannot be read (missing, truncated, corrupt) raises a BundleError naming it and what to do."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        if not (self.path / METADATA_FILE).is_file():
+        if not (self.path / METADATA_FILE).exists():  # (a folder in its place is a damaged bundle: read below)
             raise BundleError(f"{self.path}: not a sample bundle (no {METADATA_FILE}); render it with "
                               "`rigidbench render`")
         if is_published_metadata(self.metadata):
@@ -220,6 +231,25 @@ class Sample:
 
     def _read(self, name: str, loader: Callable[[Path], _T]) -> _T:
         return read_bundle_file(self.path, name, loader)
+
+    @functools.cached_property
+    def _dims(self) -> dict[str, Any]:
+        """What every file must agree with, from metadata.json: frames T, size H and W, actor names and roles
+        (None where the metadata gives none)."""
+        def dims(_: Path) -> dict[str, Any]:
+            meta = self.metadata
+            w, h = (int(v) for v in meta["resolution"]) if "resolution" in meta else (None, None)
+            names, roles = ([str(s) for s in meta[k]] if k in meta else None for k in ("actor_names", "roles"))
+            return {"T": int(meta["frames"]) if "frames" in meta else None, "H": h, "W": w, "names": names,
+                    "N": None if names is None else len(names), "roles": roles}
+
+        return self._read(METADATA_FILE, dims)
+
+    def _check_actors(self, what: str, names: Any) -> None:
+        """ValueError when the actor names ``names`` of a file differ from metadata.json's."""
+        want = self._dims["names"]
+        if want is not None and [str(s) for s in names] != want:
+            raise ValueError(f"{what} {[str(s) for s in names]} differ from {METADATA_FILE}'s actors {want}")
 
     @functools.cached_property
     def metadata(self) -> dict[str, Any]:
@@ -280,7 +310,9 @@ class Sample:
 
     def frame(self, k: int) -> np.ndarray:
         """(H,W,3) uint8 RGB frame ``k``."""
-        return self._read(f"{FRAMES_DIR}/{frame_name(k)}", _read_rgb)
+        d = self._dims
+        return self._read(f"{FRAMES_DIR}/{frame_name(k)}",
+                          lambda path: _check_shape("frame", _read_rgb(path), (d["H"], d["W"], 3)))
 
     @functools.cached_property
     def _masks(self) -> dict[str, np.ndarray]:
@@ -289,6 +321,11 @@ class Sample:
             for key in ("masks", "names", "roles"):
                 if key not in arrays:
                     raise KeyError(f"no array '{key}'")
+            d = self._dims
+            _check_shape("masks", arrays["masks"], (d["T"], d["N"], d["H"], d["W"]))
+            for key in ("names", "roles"):
+                _check_shape(key, arrays[key], (arrays["masks"].shape[1],))
+            self._check_actors("names", arrays["names"])
             return arrays
 
         return self._read(MASKS_FILE, load)
@@ -314,20 +351,56 @@ class Sample:
     @functools.cached_property
     def depth(self) -> np.ndarray:
         """(T,H,W) float32 Z depth in metres (+inf where nothing is hit)."""
-        return self._read(DEPTH_FILE, lambda path: _load_npz(path)["depth"])
+        d = self._dims
+        return self._read(DEPTH_FILE, lambda path: _check_shape("depth", _load_npz(path)["depth"],
+                                                                (d["T"], d["H"], d["W"])))
 
     @functools.cached_property
     def trajectory(self) -> Trajectory:
-        return self._read(TRAJECTORIES_FILE, Trajectory.load)
+        def load(path: Path) -> Trajectory:
+            traj = Trajectory.load(path)
+            d = self._dims
+            n = d["N"] if d["N"] is not None else len(traj.names)
+            _check_shape("roles", np.asarray(traj.roles), (n,))
+            for key, width in (("positions_m", 3), ("quat_wxyz", 4), ("linear_velocity_m_s", 3),
+                               ("angular_velocity_rad_s", 3)):
+                _check_shape(key, getattr(traj, key), (n, d["T"], width))
+            self._check_actors("actors", traj.names)
+            return traj
+
+        return self._read(TRAJECTORIES_FILE, load)
 
     @functools.cached_property
     def contacts(self) -> list[Contact]:
-        return self._read(CONTACTS_FILE, load_contacts)
+        def load(path: Path) -> list[Contact]:
+            contacts = load_contacts(path)
+            T, names = self._dims["T"], self._dims["names"]
+            bad = [c for c in contacts if (T is not None and not 0 <= c.frame < T)
+                   or (names is not None and c.a not in names)]
+            if bad:
+                raise ValueError(f"{len(bad)} contacts (first at frame {bad[0].frame}, body {bad[0].a!r}) lie outside "
+                                 f"the {T} frames or name no actor of {METADATA_FILE}")
+            return contacts
+
+        return self._read(CONTACTS_FILE, load)
 
     @functools.cached_property
     def tracks(self) -> Tracks:
         """Ground-truth point tracks; also indexable by npz key (``tracks["visibility"]``)."""
-        return self._read(TRACKS_FILE, Tracks.load)
+        def load(path: Path) -> Tracks:
+            tracks = Tracks.load(path)
+            d = self._dims
+            P = _check_shape("tracks", tracks.tracks_px, (None, d["T"], 2)).shape[0]
+            for key, want in (("visibility", (P, d["T"])), ("actor_index", (P,)), ("query_pixels", (P, 2)),
+                              ("points_body_m", (P, 3)), ("points_per_actor", (d["N"],))):
+                _check_shape(key, tracks[key], want)
+            roles = d["roles"]
+            idx = tracks.actor_index
+            if roles is not None and not all(0 <= int(i) < len(roles) and roles[int(i)] == "active" for i in idx):
+                raise ValueError(f"'actor_index' must point at the active actors of {METADATA_FILE}")
+            return tracks
+
+        return self._read(TRACKS_FILE, load)
 
     @property
     def track_active_index(self) -> np.ndarray:
@@ -382,12 +455,31 @@ class Sample:
 
 def dataset_identity(metadata: dict[str, Any]) -> dict[str, Any]:
     """Which set a bundle belongs to: the published set's name, version and MD5 for an imported bundle
-    (``metadata["source"]``), else "rendered" with the preset it was rendered at."""
+    (``metadata["source"]``), with whether that MD5 was checked against the archive and how (``verified``,
+    ``verification``), else "rendered" with the preset it was rendered at."""
     source = metadata.get("source") or {}
     if source:
-        return {"dataset": source.get("dataset"), "version": source.get("version"), "md5": source.get("md5")}
+        verified = bool(source.get("verified", source.get("md5_verified", False)))  # md5_verified: before issue 32
+        return {"dataset": source.get("dataset"), "version": source.get("version"), "md5": source.get("md5"),
+                "verified": verified, "verification": source.get("verification") or
+                (None if verified else "imported before verification was recorded")}
     return {"dataset": "rendered", "version": f"bundle v{metadata.get('bundle_version')}", "md5": None,
             "preset": metadata.get("preset")}
+
+
+def unverified_reason(identity: dict[str, Any]) -> str | None:
+    """Why a result on the set ``identity`` names (``dataset_identity`` or ``set_identity``) cannot be official
+    because of the set itself: a published set whose MD5 was never checked against its archive (None: checked,
+    or a rendered set)."""
+    for ident in identity.get("sets") or [identity]:
+        if "verified" not in ident and ident.get("dataset") in ("rendered", "unknown", None):
+            continue  # rendered by us (or nothing readable); a published set recorded before issue 32 counts
+        if not ident.get("verified"):
+            name = " ".join(str(v) for v in (ident.get("dataset"), ident.get("version")) if v) or "the reference set"
+            return (f"the reference set {name} was not checked against its published MD5 "
+                    f"({ident.get('verification') or 'no record of a check'}); import its .tar.gz or parts, or "
+                    "download it, to check it")
+    return None
 
 
 def set_identity(bundle_dirs_: list[Path]) -> dict[str, Any]:
@@ -413,12 +505,13 @@ SPLITS = ("eval", "train")
 
 
 def bundle_dirs(split_dir: str | Path) -> list[Path]:
-    """Complete bundles (subdirectories with metadata.json) of one split directory, sorted by id."""
+    """Complete bundles (subdirectories with metadata.json) of one split directory, sorted by id. A folder in
+    place of metadata.json counts: that example fails naming the damaged file instead of vanishing."""
     split_dir = Path(split_dir)
     if not split_dir.is_dir():
         return []
     return sorted(p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
-                  and (p / METADATA_FILE).is_file())
+                  and (p / METADATA_FILE).exists())
 
 
 def _holders(root: Path, depth: int = 3) -> list[Path]:
@@ -593,8 +686,11 @@ def _check_frames(path: Path, e: _Expected, problems: list[str], deep: bool) -> 
 
     for f in (frame_files[0], frame_files[-1]):
         try:
-            with Image.open(f) as im:
-                _check(problems, im.size == (e.W, e.H) and im.mode == "RGB",
+            with Image.open(f) as im:  # an imported bundle links the published RGBA PNGs (read without alpha)
+                if deep:
+                    im.load()  # the pixels: a cut file fails here, not on opening
+                modes = ("RGB", "RGBA") if e.meta.get("source") else ("RGB",)
+                _check(problems, im.size == (e.W, e.H) and im.mode in modes,
                        f"{FRAMES_DIR}/{f.name}: {im.mode} {im.size[0]}x{im.size[1]}, expected RGB {e.W}x{e.H}")
         except (OSError, UnidentifiedImageError) as exc:
             problems.append(f"{FRAMES_DIR}/{f.name}: cannot be read ({exc})")
@@ -750,5 +846,5 @@ __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_
            "TRAJECTORIES_FILE", "CONTACTS_FILE", "TRACKS_FILE", "METADATA_FILE", "PROMPT_FILE", "SPEC_FILE",
            "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
            "slice_trajectory", "camera_metadata", "make_metadata", "Sample",
-           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "refuse_imported", "READ_ERRORS",
+           "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "unverified_reason", "refuse_imported", "READ_ERRORS",
            "read_bundle_file", "damaged_error", "repair_hint", "is_imported"]

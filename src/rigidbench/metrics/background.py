@@ -13,13 +13,19 @@ Non-finite values (the rule shared with ATE, ATE-3D and IdDrift, `common.finite_
 a corner whose position or confidence is NaN or infinite at frame t counts as having zero
 confidence there, so it is left out of C_t (and, if that happens at frame 0, out of every C_t);
 it never reaches the RANSAC fit or either sum.
+
+Under the published evaluator's rules (``rules="published"``) C_t holds the corners whose product of
+confidences conf_0 * conf_t is positive (a NaN product is not; an infinite one is), whatever their
+positions: a NaN or infinite position reaches the fit and the residuals, so that frame's value and
+the clip's BGDrift are NaN (or infinite), as in the release.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, finite_and_visible
+from rigidbench.metrics.common import (PAPER_RULES, PUBLISHED_RULES, EdgeRules, MetricResult, check_rules,
+                                       finite_and_visible)
 
 MIN_CORNERS = 4
 RANSAC_THRESHOLD_PX = 3.0
@@ -71,11 +77,12 @@ def frame_residuals(x0: np.ndarray, xt: np.ndarray, ransac_threshold_px: float =
 
 
 def bgdrift(corner_tracks: np.ndarray, confidences: np.ndarray, image_height: int,
-            ransac_threshold_px: float = RANSAC_THRESHOLD_PX, min_corners: int = MIN_CORNERS) -> MetricResult:
+            ransac_threshold_px: float = RANSAC_THRESHOLD_PX, min_corners: int = MIN_CORNERS,
+            rules: EdgeRules = PAPER_RULES) -> MetricResult:
     """corner_tracks: (C, T, 2) px; confidences: (C, T) in [0, 1]. Returns (1/H) sum w r / sum w over
     frames t >= 1 with >= 4 usable corners (NaN if none), and (T,) per-frame weighted means / H
     (NaN at t = 0 and skipped frames); the clip value pools weights over frames, it is not the
-    mean of the per-frame values."""
+    mean of the per-frame values. ``rules="published"``: the release's corner rule (module docstring)."""
     corner_tracks = np.asarray(corner_tracks, dtype=np.float64)
     confidences = np.asarray(confidences, dtype=np.float64)
     if corner_tracks.ndim != 3 or corner_tracks.shape[2] != 2 or confidences.shape != corner_tracks.shape[:2]:
@@ -83,22 +90,25 @@ def bgdrift(corner_tracks: np.ndarray, confidences: np.ndarray, image_height: in
                          f"{corner_tracks.shape} and {confidences.shape}")
     t_len = corner_tracks.shape[1]
     per_frame = np.full(t_len, np.nan)
-    # (C, T): positive finite confidence at a finite position; anything else weighs zero.
-    weighted = finite_and_visible(np.isfinite(confidences) & (np.nan_to_num(confidences) > 0), corner_tracks)
-    total_wr = total_w = 0.0
-    for t in range(1, t_len):
-        usable = weighted[:, 0] & weighted[:, t]
-        if usable.sum() < min_corners:
-            continue
-        r = frame_residuals(corner_tracks[usable, 0], corner_tracks[usable, t], ransac_threshold_px)
-        w = confidences[usable, 0] * confidences[usable, t]
-        total_wr += float(w @ r)
-        total_w += float(w.sum())
-        per_frame[t] = float(w @ r) / float(w.sum()) / image_height
-    value = total_wr / total_w / image_height if total_w > 0 else float("nan")
+    published = check_rules(rules) == PUBLISHED_RULES
+    with np.errstate(invalid="ignore", over="ignore"):
+        # (C, T): positive finite confidence at a finite position; anything else weighs zero.
+        weighted = finite_and_visible(np.isfinite(confidences) & (np.nan_to_num(confidences) > 0), corner_tracks)
+        product = confidences * confidences[:, :1]  # conf_0 * conf_t
+        total_wr = total_w = 0.0
+        for t in range(1, t_len):
+            usable = product[:, t] > 0 if published else weighted[:, 0] & weighted[:, t]
+            if usable.sum() < min_corners:
+                continue
+            r = frame_residuals(corner_tracks[usable, 0], corner_tracks[usable, t], ransac_threshold_px)
+            w = product[usable, t]
+            total_wr += float(w @ r)
+            total_w += float(w.sum())
+            per_frame[t] = float(w @ r) / float(w.sum()) / image_height
+        value = total_wr / total_w / image_height if total_w > 0 else float("nan")
     return MetricResult(value, per_frame)
 
 
 def score_bgdrift(x) -> MetricResult:
     """Registry adapter: BGDrift of the MetricInputs ``x``."""
-    return bgdrift(x.bg_tracks, x.bg_confidence, x.height)
+    return bgdrift(x.bg_tracks, x.bg_confidence, x.height, rules=x.edge_rules)

@@ -14,19 +14,39 @@ camera coordinates (X right, Y down, Z forward) to Blender camera coordinates, s
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 #: Converts computer-vision camera coordinates to Blender camera coordinates (and back).
 CV_TO_BLENDER = np.diag([1.0, -1.0, -1.0])
 
+#: The two rule sets for the edge cases of docs/metrics.md ("Edge cases"): ``paper`` follows the paper's
+#: wording (non-finite positions count as not visible, generated points outside the image are left out of
+#: ATE-3D, ATE-3D is NaN without a moving actor); ``published`` follows the authors' released evaluator
+#: wherever it differs, and records NaN with a reason where that evaluator stops with an exception. The
+#: evaluation protocol chooses one (``evaluation.protocol``); every metric takes it as a parameter.
+EdgeRules = Literal["paper", "published"]
+PAPER_RULES: EdgeRules = "paper"
+PUBLISHED_RULES: EdgeRules = "published"
+EDGE_RULES: tuple[EdgeRules, ...] = (PAPER_RULES, PUBLISHED_RULES)
+
+
+def check_rules(rules: str) -> EdgeRules:
+    """``rules`` if it names an edge-rule set, else a ValueError naming the known ones."""
+    if rules not in EDGE_RULES:
+        raise ValueError(f"unknown edge rules {rules!r}; known: {', '.join(EDGE_RULES)}")
+    return rules  # type: ignore[return-value]
+
 
 @dataclass(frozen=True)
 class MetricResult:
-    """A clip-level score and, where one makes sense, its per-frame values (NaN = undefined)."""
+    """A clip-level score and, where one makes sense, its per-frame values (NaN = undefined); ``note``: why
+    the value is NaN where the published evaluator's rules stop with an exception (empty otherwise)."""
 
     value: float
     per_frame: np.ndarray | None = None
+    note: str = ""
 
 
 def finite_mean(x: np.ndarray) -> float:
@@ -121,6 +141,27 @@ def sample_bilinear(image: np.ndarray, xy: np.ndarray, transform=None) -> np.nda
     bottom = _lerp(v10, v11, fc)
     out[inside] = _lerp(top, bottom, fr)
     return out
+
+
+def sample_bilinear_clamped(image: np.ndarray, xy: np.ndarray, transform=None) -> np.ndarray:
+    """The published evaluator's sampling (its ``trajectory.bilinear_sample``). image: (H, W) float; xy: (M, 2)
+    pixel coordinates without NaN (an infinite one is clamped like any other). Returns (M,) float64.
+
+    Coordinates are clamped to [0, W - 1.0001] x [0, H - 1.0001] first, so a point outside the image takes
+    the value of the nearest border pixels; the four neighbours are blended with all four weights, so a NaN
+    neighbour makes the sample NaN even where its weight is 0. ``transform`` as in `sample_bilinear`."""
+    h, w = image.shape
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    col = np.clip(xy[:, 0], 0.0, w - 1.0001)
+    row = np.clip(xy[:, 1], 0.0, h - 1.0001)
+    c0, r0 = np.floor(col).astype(np.int64), np.floor(row).astype(np.int64)
+    c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+    fc, fr = col - c0, row - r0
+    taps = [np.asarray(image[r, c], dtype=np.float64) for r, c in ((r0, c0), (r0, c1), (r1, c0), (r1, c1))]
+    if transform is not None:
+        taps = [transform(v) for v in taps]
+    v00, v01, v10, v11 = taps
+    return v00 * (1 - fc) * (1 - fr) + v01 * fc * (1 - fr) + v10 * (1 - fc) * fr + v11 * fc * fr
 
 
 def _lerp(a: np.ndarray, b: np.ndarray, f: np.ndarray) -> np.ndarray:

@@ -22,6 +22,23 @@ whose generated position is
 - on a pixel with a valid aligned depth (positive aligned disparity, finite prediction).
 
 An actor-frame none of whose points passes these tests has no reconstruction and is not in V3.
+
+Under the published evaluator's rules (``rules="published"``, its ``eval/score/trajectory.py`` and
+``depth.py``) ATE-3D differs in exactly these places:
+
+- every jointly visible generated point is used: a point outside the image is clamped to
+  [0, W - 1.0001] x [0, H - 1.0001] for the depth lookup (it takes the depth of the border pixels)
+  and unprojected at its unclamped position; an infinite position makes its actor-frame's
+  reconstruction non-finite (so the actor-frame leaves V3); a NaN position stops the release
+  (``IndexError``), which is recorded here as NaN with that reason;
+- the bilinear depth sample blends all four neighbours, so a neighbour without depth (NaN) drops
+  the point even where its weight is 0;
+- the geometric median clamps distances at 1e-5 and, on convergence, returns the estimate before
+  the last step;
+- with no actor moving more than 1 cm the denominator is 1 (the raw RMSE in metres), not NaN;
+- a constant predicted disparity gets the minimum-norm least-squares fit (``numpy.linalg.lstsq``),
+  scale d0 y / (d0^2 + 1) and shift y / (d0^2 + 1), instead of scale 0 and shift y (the same depth on
+  the valid pixels; it differs on pixels without valid reference depth). SI-MSE shares this fit.
 """
 
 from __future__ import annotations
@@ -31,8 +48,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigidbench.metrics.common import (MetricResult, finite_and_visible, finite_mean, geometric_median, inside_image,
-                                       sample_bilinear, unproject)
+from rigidbench.metrics.common import (PAPER_RULES, PUBLISHED_RULES, EdgeRules, MetricResult,
+                                       check_rules, finite_and_visible, finite_mean, geometric_median, inside_image,
+                                       sample_bilinear, sample_bilinear_clamped, unproject)
 
 log = logging.getLogger(__name__)
 
@@ -106,11 +124,13 @@ def _valid_pairs(disparity: np.ndarray, depth_ref_m: np.ndarray, valid: np.ndarr
 
 
 def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray,
-                            valid: np.ndarray | None = None) -> DepthAlignment:
+                            valid: np.ndarray | None = None, rules: EdgeRules = PAPER_RULES) -> DepthAlignment:
     """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns the clip-level least-squares
     (scale, shift) with scale * d + shift ~= 1/Z over pixels with finite d and Z in (0, 100) m.
-    ``valid``: those pixels as (T, H, W) bool when already known (``depth_validity``)."""
+    ``valid``: those pixels as (T, H, W) bool when already known (``depth_validity``). A constant
+    prediction d0 gets scale 0 (``rules="published"``: the minimum-norm fit, see the module)."""
     _check_depth_inputs(disparity, depth_ref_m)
+    rules = check_rules(rules)
     # Shifted one-pass sums in float64: the pivot (first frame's means) removes cancellation.
     n = 0
     pivot_d = pivot_y = None
@@ -144,6 +164,9 @@ def fit_disparity_alignment(disparity: np.ndarray, depth_ref_m: np.ndarray,
     if not var_d > 0:
         # Constant prediction: every scale fits equally well; the minimum-norm answer is scale 0.
         log.warning("predicted disparity is constant over the valid pixels; aligned depth is constant")
+        if rules == PUBLISHED_RULES:  # numpy.linalg.lstsq's minimum-norm solution of s d0 + c = mean(1/Z)
+            d0, y = mean_d + pivot_d, mean_y + pivot_y
+            return DepthAlignment(d0 * y / (d0 * d0 + 1.0), y / (d0 * d0 + 1.0), n)
         return DepthAlignment(0.0, mean_y + pivot_y, n)
     scale = cov_dy / var_d
     shift = (mean_y + pivot_y) - scale * (mean_d + pivot_d)
@@ -198,44 +221,81 @@ def si_mse(disparity: np.ndarray, depth_ref_m: np.ndarray,
 def reconstruct_actor_positions(gen_tracks: np.ndarray, visible: np.ndarray, actor_index: np.ndarray,
                                 n_actors: int, disparity: np.ndarray, shape_hw: tuple[int, int],
                                 alignment: DepthAlignment, K: np.ndarray, R_c: np.ndarray,
-                                t_c: np.ndarray, ref_points_m: np.ndarray | None = None
-                                ) -> tuple[np.ndarray, np.ndarray | None]:
+                                t_c: np.ndarray, ref_points_m: np.ndarray | None = None,
+                                rules: EdgeRules = PAPER_RULES) -> tuple[np.ndarray, np.ndarray | None]:
     """gen_tracks: (P, T, 2) px; visible: (P, T) bool; actor_index: (P,) int; disparity: (T, h, w).
     Returns (N, T, 3) world positions in m: geometric median of each actor's unprojected visible
     points, with depth sampled bilinearly from the aligned depth map; points with a non-finite
     position, outside the image or on invalid depth are left out; NaN where no point is left.
     With ``ref_points_m`` (P, T, 3), the simulator positions of the same tracked points, also
-    returns the geometric median of exactly the points used at each actor-frame (else None)."""
+    returns the geometric median of exactly the points used at each actor-frame (else None).
+    ``rules="published"``: every visible point, the clamped depth lookup, the unclamped unprojection and
+    the release's median (module docstring); gen_tracks must then hold no NaN at a visible point-frame
+    (the release stops there; `ate3d` checks first)."""
+    published = check_rules(rules) == PUBLISHED_RULES
     t_len = gen_tracks.shape[1]
     actor_index = np.asarray(actor_index)
     out = np.full((n_actors, t_len, 3), np.nan)
     ref = None if ref_points_m is None else np.full((n_actors, t_len, 3), np.nan)
     if alignment.n_pixels == 0:
         return out, ref
-    usable = finite_and_visible(visible, gen_tracks) & inside_image(gen_tracks, *shape_hw)
+    usable = visible if published else finite_and_visible(visible, gen_tracks) & inside_image(gen_tracks, *shape_hw)
+    sample, median = ((sample_bilinear_clamped, geometric_median_published) if published
+                      else (sample_bilinear, geometric_median))
     for t in range(t_len):
         points_t = np.flatnonzero(usable[:, t])
         if points_t.size == 0:
             continue
         xy = np.asarray(gen_tracks[points_t, t], dtype=np.float64)
         # Aligned depth is evaluated only at the four pixels each sample reads.
-        depth_m = sample_bilinear(disparity_frame(disparity, t, shape_hw), xy,
-                                  transform=lambda d: aligned_depth(d, alignment))
-        world = unproject(xy, depth_m, K, R_c, t_c)
-        finite = np.isfinite(world).all(axis=1)
+        depth_m = sample(disparity_frame(disparity, t, shape_hw), xy, transform=lambda d: aligned_depth(d, alignment))
+        with np.errstate(invalid="ignore", over="ignore"):
+            world = unproject(xy, depth_m, K, R_c, t_c)
+            # The release keeps a point with a positive depth, even where its world position is not finite.
+            kept = np.isfinite(depth_m) & (depth_m > 0) if published else np.isfinite(world).all(axis=1)
         for a in range(n_actors):
-            mine = finite & (actor_index[points_t] == a)
+            mine = kept & (actor_index[points_t] == a)
             if mine.any():
-                out[a, t] = geometric_median(world[mine])
+                out[a, t] = median(world[mine])
                 if ref is not None:
-                    ref[a, t] = geometric_median(np.asarray(ref_points_m, np.float64)[points_t[mine], t])
+                    ref[a, t] = median(np.asarray(ref_points_m, np.float64)[points_t[mine], t])
     return out, ref
+
+
+def geometric_median_published(points: np.ndarray, tol: float = 1e-5, max_iter: int = 100) -> np.ndarray:
+    """The published evaluator's Weiszfeld iteration: points (M, D), M >= 1. One point is returned as it
+    is; otherwise started at the mean, distances clamped at ``tol``, and when a step moves less than
+    ``tol`` the estimate before that step is returned. Non-finite points give a non-finite result."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 1:
+        return points[0]
+    estimate = points.mean(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        for _ in range(max_iter):
+            weights = 1.0 / np.maximum(np.linalg.norm(points - estimate, axis=1, keepdims=True), tol)
+            new = (points * weights).sum(axis=0) / weights.sum()
+            if np.linalg.norm(new - estimate) < tol:
+                break
+            estimate = new
+    return estimate
+
+
+def _published_stop(gen_tracks: np.ndarray, visible: np.ndarray) -> str:
+    """Why the published evaluator stops on these tracks ('' when it does not): a NaN coordinate of a
+    visible generated point reaches an integer index in its ``bilinear_sample``."""
+    bad = visible & np.isnan(np.asarray(gen_tracks, dtype=np.float64)).any(axis=-1)
+    if not bad.any():
+        return ""
+    p, t = (int(i[0]) for i in np.nonzero(bad))
+    return ("undefined under the published evaluator's rules: it stops with IndexError "
+            f"(trajectory.bilinear_sample) on a NaN generated track position flagged visible (point {p}, frame {t})")
 
 
 def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarray,
           actor_index: np.ndarray, disparity: np.ndarray, depth_ref_m: np.ndarray, K: np.ndarray,
           R_c: np.ndarray, t_c: np.ndarray, positions_m: np.ndarray,
-          alignment: DepthAlignment | None = None, ref_points_m: np.ndarray | None = None) -> MetricResult:
+          alignment: DepthAlignment | None = None, ref_points_m: np.ndarray | None = None,
+          rules: EdgeRules = PAPER_RULES) -> MetricResult:
     """gen_tracks: (P, T, 2) px; visibilities (P, T) bool; actor_index (P,) int in [0, N);
     disparity (T, h, w); depth_ref_m (T, H, W) m; K (3,3); camera-to-world R_c (3,3), t_c (3,)
     (Blender convention); positions_m (N, T, 3) reference actor positions over the same T.
@@ -244,8 +304,10 @@ def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarr
     the reconstruction (so a perfect prediction scores exactly zero, rather than the offset between
     a surface-point median and the body origin), while the displacement scale still uses
     positions_m. Returns RMSE over finite actor-frames / mean start-to-end displacement of actors moving
-    > 0.01 m (NaN if either set is empty), and (T,) per-frame RMS over actors / the same denominator."""
+    > 0.01 m (NaN if either set is empty), and (T,) per-frame RMS over actors / the same denominator.
+    ``rules="published"``: the published evaluator's rules (module docstring); ref_points_m is not used."""
     _check_depth_inputs(disparity, depth_ref_m)
+    rules = check_rules(rules)
     positions_m = np.asarray(positions_m, dtype=np.float64)
     n_actors, t_len = positions_m.shape[:2]
     if gen_tracks.shape[1] != t_len or depth_ref_m.shape[0] != t_len:
@@ -255,21 +317,29 @@ def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarr
     if actor_index.size and (actor_index.min() < 0 or actor_index.max() >= n_actors):
         raise ValueError(f"actor_index must lie in [0, {n_actors}) to match positions_m; got "
                          f"[{actor_index.min()}, {actor_index.max()}]")
-    if alignment is None:
-        alignment = fit_disparity_alignment(disparity, depth_ref_m)
     visible = np.asarray(ref_visible, bool) & np.asarray(gen_visible, bool)
+    per_frame = np.full(t_len, np.nan)
+    if rules == PUBLISHED_RULES:
+        stop = _published_stop(gen_tracks, visible)
+        if stop:
+            return MetricResult(float("nan"), per_frame, stop)
+    if alignment is None:
+        alignment = fit_disparity_alignment(disparity, depth_ref_m, rules=rules)
+    if rules == PUBLISHED_RULES:
+        ref_points_m = None
     recon, ref_points_median = reconstruct_actor_positions(gen_tracks, visible, actor_index, n_actors, disparity,
                                                            depth_ref_m.shape[1:], alignment, K, R_c, t_c,
-                                                           ref_points_m)
+                                                           ref_points_m, rules=rules)
     target = positions_m if ref_points_median is None else ref_points_median
-    sq_err = np.sum((recon - target) ** 2, axis=-1)  # (N, T), NaN outside V3
+    with np.errstate(invalid="ignore", over="ignore"):
+        sq_err = np.sum((recon - target) ** 2, axis=-1)  # (N, T), NaN outside V3
     displacement = np.linalg.norm(positions_m[:, -1] - positions_m[:, 0], axis=-1)
     moving = displacement > MIN_DISPLACEMENT_M
-    in_v3 = np.isfinite(sq_err)
-    per_frame = np.full(t_len, np.nan)
-    if not in_v3.any() or not moving.any():
+    in_v3 = np.isfinite(recon).all(axis=-1)
+    if not in_v3.any() or (rules == PAPER_RULES and not moving.any()):
         return MetricResult(float("nan"), per_frame)
-    scale = float(displacement[moving].mean())
+    # The published evaluator divides by 1 (metres) when no actor moves more than 1 cm.
+    scale = float(displacement[moving].mean()) if moving.any() else 1.0
     value = float(np.sqrt(sq_err[in_v3].mean())) / scale
     counts = in_v3.sum(axis=0)
     np.divide(np.where(in_v3, sq_err, 0.0).sum(axis=0), counts, out=per_frame, where=counts > 0)
@@ -288,14 +358,15 @@ def _validity(x) -> np.ndarray:
 def _alignment(x) -> DepthAlignment:
     """The disparity-to-depth fit of one example, shared by ATE-3D and SI-MSE."""
     return x.shared("disparity_alignment",
-                    lambda: fit_disparity_alignment(x.gen_disparity, x.ref_depth_m, valid=_validity(x)))
+                    lambda: fit_disparity_alignment(x.gen_disparity, x.ref_depth_m, valid=_validity(x),
+                                                    rules=x.edge_rules))
 
 
 def score_ate3d(x) -> MetricResult:
     """ATE-3D against the simulated actor positions p_{a,t} (the paper's equation)."""
     c2w = np.asarray(x.camera_to_world, np.float64)
     return ate3d(x.gen_tracks, x.ref_visibility, x.gen_visibility, x.track_actor, x.gen_disparity, x.ref_depth_m,
-                 x.K, c2w[:3, :3], c2w[:3, 3], x.actor_positions_m, alignment=_alignment(x))
+                 x.K, c2w[:3, :3], c2w[:3, 3], x.actor_positions_m, alignment=_alignment(x), rules=x.edge_rules)
 
 
 def score_si_mse(x) -> MetricResult:

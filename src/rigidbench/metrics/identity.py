@@ -13,6 +13,11 @@ image (no padding), resized on its own to 224 x 224 (bilinear, half-pixel centre
 crop of w x h pixels is stretched to the full input), scaled to [0, 1] and normalised with
 the ImageNet mean and std. Features are L2-normalised before their dot product. Similarities
 are averaged within each actor and then across actors that have at least one pair.
+
+Under the published evaluator's rules (``rules="published"``) the one difference is a non-finite
+position: a reference or generated track position with a NaN or infinite coordinate at a frame t >= 1
+where the point is visible in both clips stops the release (``int(round(x))`` raises in its
+``extract_patch``), so IdDrift is NaN for the example, with that reason in ``MetricResult.note``.
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ from typing import Callable
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, finite_and_visible, finite_mean, infer_device
+from rigidbench.metrics.common import (PAPER_RULES, PUBLISHED_RULES, EdgeRules, MetricResult, check_rules,
+                                       finite_and_visible, finite_mean, infer_device)
 from rigidbench.metrics.tracks import check_tracks
 
 PATCH_SIZE_PX = 64
@@ -145,18 +151,24 @@ def pair_similarities(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.n
 
 def iddrift(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.ndarray, gen_tracks: np.ndarray,
             ref_visible: np.ndarray, gen_visible: np.ndarray, actor_index: np.ndarray,
-            feature_fn: Callable, batch_size: int = 256, device: str | None = None) -> MetricResult:
+            feature_fn: Callable, batch_size: int = 256, device: str | None = None,
+            rules: EdgeRules = PAPER_RULES) -> MetricResult:
     """RGB (T, H, W, 3) uint8; tracks (P, T, 2) px; visibilities (P, T) bool; actor_index (P,) int;
     feature_fn maps (B, 3, 224, 224) ImageNet-normalised float to (B, D); patches are prepared on
     `device`, by default the device of feature_fn's parameters if it is a torch module. Returns 1 - mean over
     actors of the actor's mean patch cosine similarity (NaN if no actor has a pair), and (T,)
-    per frame: 1 - the same actor-then-pair mean restricted to frame t (NaN at t = 0)."""
+    per frame: 1 - the same actor-then-pair mean restricted to frame t (NaN at t = 0).
+    ``rules="published"``: NaN with a note where the published evaluator stops (module docstring)."""
     check_tracks(ref_tracks, gen_tracks, ref_visible, gen_visible)
     if ref_rgb.shape != gen_rgb.shape or ref_rgb.shape[0] != ref_tracks.shape[1]:
         raise ValueError(f"RGB clips {ref_rgb.shape} / {gen_rgb.shape} must match each other and the "
                          f"{ref_tracks.shape[1]} track frames")
     t_len, height, width = ref_rgb.shape[:3]
     actor_index = np.asarray(actor_index)
+    if check_rules(rules) == PUBLISHED_RULES:
+        stop = _published_stop(ref_tracks, gen_tracks, ref_visible & gen_visible)
+        if stop:
+            return MetricResult(float("nan"), np.full(t_len, np.nan), stop)
     p_idx, t_idx = patch_pairs(ref_tracks, gen_tracks, ref_visible, gen_visible, height, width)
     per_frame = np.full(t_len, np.nan)
     if len(p_idx) == 0:
@@ -174,9 +186,23 @@ def iddrift(ref_rgb: np.ndarray, gen_rgb: np.ndarray, ref_tracks: np.ndarray, ge
     return MetricResult(1.0 - finite_mean(np.asarray(actor_means)), per_frame)
 
 
+def _published_stop(ref_tracks: np.ndarray, gen_tracks: np.ndarray, visible: np.ndarray) -> str:
+    """Why the published evaluator stops on these tracks ('' when it does not): a non-finite coordinate
+    of either clip's position at a jointly visible point-frame with t >= 1."""
+    bad = visible & ~(np.isfinite(np.asarray(ref_tracks, dtype=np.float64)).all(axis=-1)
+                      & np.isfinite(np.asarray(gen_tracks, dtype=np.float64)).all(axis=-1))
+    bad[:, 0] = False
+    if not bad.any():
+        return ""
+    p, t = (int(i[0]) for i in np.nonzero(bad))
+    return ("undefined under the published evaluator's rules: it stops with ValueError/OverflowError "
+            f"(identity.extract_patch, int(round(x))) on a non-finite track position flagged visible (point {p}, "
+            f"frame {t})")
+
+
 def score_iddrift(x) -> MetricResult | None:
     """Registry adapter: IdDrift of the MetricInputs ``x`` (None without the DINOv2 network)."""
     if x.identity_net is None:
         return None
     return iddrift(x.ref_rgb, x.gen_rgb, x.ref_tracks, x.gen_tracks, x.ref_visibility, x.gen_visibility,
-                   x.track_actor, x.identity_net)
+                   x.track_actor, x.identity_net, rules=x.edge_rules)

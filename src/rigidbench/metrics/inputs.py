@@ -14,6 +14,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigidbench.metrics.common import PAPER_RULES, EdgeRules, check_rules
+
 
 @dataclass
 class MetricInputs:
@@ -24,7 +26,9 @@ class MetricInputs:
     active actors; ref_depth_m (T,H,W) float (Cycles Z, m); gen_disparity (T,H,W) float (affine-
     invariant); K (3,3); camera_to_world (4,4); actor_positions_m (N,T,3) simulated body positions;
     ref_points_m (P,T,3) simulated world positions of the tracked surface points; bg_tracks (C,T,2) px,
-    bg_confidence (C,T) in [0, 1]; lpips_net and identity_net the feature networks (None: unavailable).
+    bg_confidence (C,T) in [0, 1]; lpips_net and identity_net the feature networks (None: unavailable);
+    edge_rules: which rule set the metrics follow in the edge cases of docs/metrics.md, "paper" or
+    "published" (``common.EDGE_RULES``; the evaluation protocol decides it).
     """
 
     ref_rgb: np.ndarray
@@ -46,7 +50,11 @@ class MetricInputs:
     bg_confidence: np.ndarray
     lpips_net: Callable | None = None
     identity_net: Callable | None = None
+    edge_rules: EdgeRules = PAPER_RULES
     _shared: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        check_rules(self.edge_rules)
 
     @property
     def height(self) -> int:

@@ -96,7 +96,7 @@ def default_lin_weights_path() -> Path:
     spec = importlib.util.find_spec("lpips")
     if spec is None or not spec.submodule_search_locations:
         raise FileNotFoundError("the lpips package is not installed, so its linear-layer weights "
-                                "weights/v0.1/alex.pth are missing; run `pip install lpips` "
+                                "weights/v0.1/alex.pth are missing; run `pip install --no-deps lpips` "
                                 "or pass lin_weights=PATH")
     path = Path(next(iter(spec.submodule_search_locations))) / "weights" / "v0.1" / "alex.pth"
     if not path.is_file():

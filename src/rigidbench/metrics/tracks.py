@@ -5,13 +5,18 @@ Tracks are (P, T, 2) pixel coordinates (x, y) with pixel centres at integers (se
 flags are true and both positions are finite (a NaN or infinite position counts as not
 visible, `common.finite_and_visible`), and every such pair has equal weight (no per-actor or
 per-frame averaging).
+
+Under the published evaluator's rules (``rules="published"``) a point-frame counts when both visibility
+flags are true, whatever its positions: a NaN or infinite position flagged visible makes that frame's
+and the clip's ATE NaN (or infinite), as the release's plain mean over the visible pairs does.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from rigidbench.metrics.common import MetricResult, check_same_shape, finite_and_visible
+from rigidbench.metrics.common import (PAPER_RULES, PUBLISHED_RULES, EdgeRules, MetricResult, check_rules,
+                                       check_same_shape, finite_and_visible)
 
 
 def check_tracks(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
@@ -32,11 +37,14 @@ def joint_visibility(ref_visible: np.ndarray, gen_visible: np.ndarray) -> np.nda
 
 
 def ate(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
-        gen_visible: np.ndarray, image_height: int) -> MetricResult:
+        gen_visible: np.ndarray, image_height: int, rules: EdgeRules = PAPER_RULES) -> MetricResult:
     """ref_tracks, gen_tracks: (P, T, 2) px; visibilities (P, T) bool. Returns the mean of
-    ||u^ - u|| / H over jointly visible, finite point-frames (NaN if none) and (T,) per-frame means."""
+    ||u^ - u|| / H over jointly visible, finite point-frames (NaN if none) and (T,) per-frame means.
+    ``rules="published"``: over every jointly visible point-frame, finite or not (see the module)."""
     check_tracks(ref_tracks, gen_tracks, ref_visible, gen_visible)
-    keep = finite_and_visible(joint_visibility(ref_visible, gen_visible), ref_tracks, gen_tracks)
+    keep = joint_visibility(ref_visible, gen_visible)
+    if check_rules(rules) != PUBLISHED_RULES:
+        keep = finite_and_visible(keep, ref_tracks, gen_tracks)
     with np.errstate(invalid="ignore"):
         err = np.linalg.norm(np.asarray(gen_tracks, np.float64) - np.asarray(ref_tracks, np.float64),
                              axis=-1) / float(image_height)
@@ -49,4 +57,4 @@ def ate(ref_tracks: np.ndarray, gen_tracks: np.ndarray, ref_visible: np.ndarray,
 
 def score_ate(x) -> MetricResult:
     """Registry adapter: ATE of the MetricInputs ``x``."""
-    return ate(x.ref_tracks, x.gen_tracks, x.ref_visibility, x.gen_visibility, x.height)
+    return ate(x.ref_tracks, x.gen_tracks, x.ref_visibility, x.gen_visibility, x.height, rules=x.edge_rules)

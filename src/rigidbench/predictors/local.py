@@ -275,6 +275,15 @@ class LocalVideoModel(Predictor):
         self._commit = hub_commit(self.model_id, self.revision(ctx)) if src["source"] == "hub" else None
         return pipe
 
+    def output_type(self, ctx: PredictContext) -> str:
+        """The pipeline call's ``output_type``: "np" (frames in [0, 1], converted by ``frames``); a model that
+        decodes the latents itself returns "latent" and overrides ``frames``."""
+        return "np"
+
+    def frames(self, pipe, out, ctx: PredictContext) -> np.ndarray:
+        """(T,H,W,3) uint8 frames from the pipeline call's output (``frames_to_uint8``)."""
+        return frames_to_uint8(out.frames)
+
     def call_kwargs(self, pipe, inputs, p: dict[str, Any]) -> dict[str, Any]:
         """The model-specific arguments of the pipeline call (its image conditioning)."""
         from PIL import Image
@@ -293,10 +302,10 @@ class LocalVideoModel(Predictor):
         started = time.perf_counter()
         out = pipe(prompt=inputs.prompt, negative_prompt=inputs.negative_prompt, height=p["height"],
                    width=p["width"], num_frames=p["num_frames"], num_inference_steps=p["steps"],
-                   guidance_scale=p["guidance_scale"], generator=generator, output_type="np",
+                   guidance_scale=p["guidance_scale"], generator=generator, output_type=self.output_type(ctx),
                    max_sequence_length=self.max_sequence_length, **self.call_kwargs(pipe, inputs, p))
+        frames = self.frames(pipe, out, ctx)
         seconds = time.perf_counter() - started
-        frames = frames_to_uint8(out.frames)
         metadata: dict[str, Any] = {"seed": int(ctx.seed), "seconds_model": round(seconds, 3),
                                     "frames": int(frames.shape[0]),
                                     "resolution": [int(frames.shape[2]), int(frames.shape[1])]}

@@ -279,13 +279,25 @@ class LocalOptions(ModelOptions):
 
 @dataclass(frozen=True)
 class WanOptions(LocalOptions):
-    """``wan-2.2``: the local options, the sampler and a fine-tuned checkpoint."""
+    """``wan-2.2``: the local options, the sampler, a fine-tuned checkpoint and the sampling numerics
+    (``recipe`` names a set of the last three; an option given beside it overrides the recipe's value)."""
 
     checkpoint: Path | None = option(None, "a fine-tuned model: a LoRA adapter (PEFT directory or safetensors) or a "
                                            "full fine-tuned transformer", shown="none")
     sampler: Literal["flow-euler", "unipc"] = option("flow-euler", "flow-euler (the paper's runs: DiffSynth's "
                                                                    "flow-matching Euler schedule, shift 5) or unipc "
                                                                    "(the Diffusers repository's scheduler)")
+    recipe: Literal["ours", "release"] = option("ours", "ours (diffusers' numerics) or release (DiffSynth's, as the "
+                                                        "paper's runs sampled: timestep_dtype and update_dtype "
+                                                        "bfloat16, vae_codec diffsynth-tiled)")
+    timestep_dtype: Literal["float32", "bfloat16"] | None = option(
+        None, "the timestep the transformer sees: float32 or rounded to bfloat16 (DiffSynth)", shown="recipe's")
+    update_dtype: Literal["float32", "bfloat16"] | None = option(
+        None, "the Euler update: float32 (diffusers) or bfloat16 (DiffSynth: dt x v rounded, then added to "
+              "bfloat16 latents); bfloat16 needs sampler flow-euler", shown="recipe's")
+    vae_codec: Literal["diffusers", "diffsynth-tiled"] | None = option(
+        None, "diffusers (untiled, or tiled_vae) or diffsynth-tiled (DiffSynth's tiled encode of the first frame "
+              "and tiled decode, 30x52 latent tiles, stride 15x26, and its uint8 conversion)", shown="recipe's")
 
 
 @dataclass(frozen=True)

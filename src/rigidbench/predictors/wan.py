@@ -17,6 +17,18 @@ authors' release, through DiffSynth-Studio) used DiffSynth's flow-matching Euler
 UniPCMultistepScheduler, flow_shift 5.0), this adapter's default before; it is recorded as a difference
 from the release.
 
+``recipe``: ``ours`` (default) or ``release``, the sampling numerics (``RECIPES``): ``timestep_dtype``
+(the timestep the transformer sees: float32, or rounded to bfloat16 as DiffSynth casts it),
+``update_dtype`` (the Euler update: diffusers' float32 step, or DiffSynth's on bfloat16 latents) and
+``vae_codec`` (diffusers' VAE, or DiffSynth's tiled encode and decode and its uint8 conversion); see
+``wan_sampler`` and ``wan_diffsynth``. ``release`` sets all three to the release's; each may also be
+given on its own, and then overrides the recipe's value. The recipe is one option rather than a
+separate model so that runs keep the model name ``wan-2.2`` (reports pair and compare by it), it is
+checked without torch like every option, and it travels to worker processes in the options mapping.
+Numerics other than ours' enter the run's settings (so a folder of other numerics is generated again,
+and a folder made before these options existed is still reused under ``ours``); generation.json
+records the recipe, the three values and every one that differs from the release.
+
 ``checkpoint``: a fine-tuned model (the paper's section 5), one of
 
 - a LoRA adapter: a PEFT adapter directory (``adapter_config.json`` + ``adapter_model.safetensors``,
@@ -42,14 +54,14 @@ before the first example.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 from pathlib import Path
 from typing import Any
 
 from ..driver import file_digest
-from ..errors import RigidBenchError, UserError
+from ..errors import PredictionError, RigidBenchError, UserError
+from ..extras import available, install_command
 from .base import PredictContext
 from .local import LocalVideoModel, dtype_kwarg
 from .options import WanOptions
@@ -70,6 +82,22 @@ SAMPLERS = {
 DEFAULT_SAMPLER = "flow-euler"  # SAMPLERS and this are WanOptions.sampler's choices and default (tests check)
 RELEASE_SAMPLER = ("DiffSynth-Studio 2.0.18 WanVideoPipeline defaults: FlowMatchScheduler('Wan'), sigma_shift 5.0, "
                    "50 steps")
+#: the sampling numerics of each ``recipe`` (WanOptions.recipe; every value one of the option's choices)
+RECIPES = {
+    "ours": {"timestep_dtype": "float32", "update_dtype": "float32", "vae_codec": "diffusers"},
+    "release": {"timestep_dtype": "bfloat16", "update_dtype": "bfloat16", "vae_codec": "diffsynth-tiled"},
+}
+NUMERICS = {
+    "timestep_dtype": {"float32": "the scheduler's float32 timestep",
+                       "bfloat16": "each timestep rounded to bfloat16 before the transformer (DiffSynth)"},
+    "update_dtype": {"float32": "diffusers' Euler step: x + dt v in float32, stored in the model output's dtype",
+                     "bfloat16": "DiffSynth's Euler step on bfloat16 latents: dt v rounded to bfloat16, then the sum"},
+    "vae_codec": {"diffusers": "diffusers' VAE encode and decode (tiled by diffusers only with tiled_vae); frames "
+                               "rounded from (x / 2 + 0.5) x 255",
+                  "diffsynth-tiled": "DiffSynth's tiled VAE (tiles of 30x52 latents, stride 15x26, linear blending) "
+                                     "for the first frame's encode and the decode; frames ((x + 1) x 127.5) "
+                                     "truncated to uint8"},
+}
 HASH_LIMIT_BYTES = 2 * 2**30  # checkpoints up to this size are identified by their sha256, larger by size and mtime
 _FINGERPRINTS: dict[tuple, dict] = {}  # (path, size, mtime) -> fingerprint, so a run hashes each file once
 
@@ -272,6 +300,8 @@ class WanPredictor(LocalVideoModel):
     def __init__(self, info):
         super().__init__(info)
         self._checkpoint_record: dict[str, Any] | None = None
+        self._hooks: list = []  # the timestep hook on the loaded transformer (removed by close)
+        self._configured = None  # the pipeline configure changed (its numerics are undone by close)
 
     def checkpoint(self, ctx: PredictContext) -> dict[str, Any] | None:
         path = self.options(ctx).checkpoint
@@ -281,17 +311,36 @@ class WanPredictor(LocalVideoModel):
         """The ``sampler`` option: "flow-euler" (default, the release's) or "unipc" (checked by WanOptions)."""
         return self.options(ctx).sampler
 
+    def numerics(self, ctx: PredictContext) -> dict[str, str]:
+        """The sampling numerics of this run: the recipe's, each overridden by its option when given."""
+        o = self.options(ctx)
+        chosen = {key: getattr(o, key) or value for key, value in RECIPES[o.recipe].items()}
+        if chosen["update_dtype"] == "bfloat16" and o.sampler != DEFAULT_SAMPLER:
+            raise UserError(f"{self.name}: update_dtype bfloat16 (recipe {o.recipe}) is DiffSynth's Euler step and "
+                            f"needs sampler {DEFAULT_SAMPLER}, got {o.sampler}; give update_dtype=float32 or drop "
+                            "the sampler")
+        if chosen["vae_codec"] == "diffsynth-tiled" and o.tiled_vae:
+            raise UserError(f"{self.name}: vae_codec diffsynth-tiled (recipe {o.recipe}) and tiled_vae both tile the "
+                            "VAE; give one of them")
+        return chosen
+
     def extra_settings(self, ctx: PredictContext) -> dict[str, Any]:
         found = self.checkpoint(ctx)
         checkpoint = None if found is None else {"kind": found["kind"], "path": found["path"],
                                                  "files": fingerprint(found)}
-        return {"sampler": self.sampler(ctx), "checkpoint": checkpoint}
+        numerics = self.numerics(ctx)
+        extra = {"numerics": numerics} if numerics != RECIPES["ours"] else {}  # ours: the settings as before
+        return {"sampler": self.sampler(ctx), "checkpoint": checkpoint, **extra}
 
     def extra_info(self, ctx: PredictContext) -> dict[str, Any]:
-        sampler = self.sampler(ctx)
-        info: dict[str, Any] = {"sampler": sampler, "scheduler": SAMPLERS[sampler], "release_sampler": RELEASE_SAMPLER}
-        if sampler != DEFAULT_SAMPLER:
-            info["differs_from_release"] = {"sampler": [sampler, DEFAULT_SAMPLER]}
+        sampler, numerics = self.sampler(ctx), self.numerics(ctx)
+        info: dict[str, Any] = {"sampler": sampler, "scheduler": SAMPLERS[sampler], "release_sampler": RELEASE_SAMPLER,
+                                "recipe": self.options(ctx).recipe, "numerics": numerics,
+                                "numerics_described": {k: NUMERICS[k][v] for k, v in numerics.items()}}
+        release = {"sampler": DEFAULT_SAMPLER, **RECIPES["release"]}
+        differs = {k: [v, release[k]] for k, v in {"sampler": sampler, **numerics}.items() if v != release[k]}
+        if differs:
+            info["differs_from_release"] = differs
         found = self.checkpoint(ctx)
         if found is None:
             return {**info, "checkpoint": None}
@@ -301,9 +350,31 @@ class WanPredictor(LocalVideoModel):
         record = {**found, "description": described[found["kind"]], "files": fingerprint(found)}
         return {**info, "checkpoint": record}
 
+    def output_type(self, ctx: PredictContext) -> str:
+        return "latent" if self.numerics(ctx)["vae_codec"] == "diffsynth-tiled" else "np"
+
+    def frames(self, pipe, out, ctx: PredictContext):
+        """The pipeline's frames, or with vae_codec diffsynth-tiled its latents decoded as DiffSynth decodes."""
+        if self.output_type(ctx) != "latent":
+            return super().frames(pipe, out, ctx)
+        import torch
+
+        from .wan_diffsynth import diffsynth_to_uint8, tiled_decode
+
+        vae = pipe.vae
+        latents = out.frames.to(dtype=vae.dtype)
+        shape = (1, vae.config.z_dim, 1, 1, 1)
+        mean = torch.tensor(vae.config.latents_mean).view(shape).to(latents.device, latents.dtype)
+        inverse_std = 1.0 / torch.tensor(vae.config.latents_std).view(shape).to(latents.device, latents.dtype)
+        video = tiled_decode(vae, latents / inverse_std + mean)  # the pipeline's un-normalisation, then DiffSynth's
+        if not torch.isfinite(video).all():
+            raise PredictionError(f"{self.name}: the decoded video has non-finite values: no video written")
+        return diffsynth_to_uint8(video)
+
     def predict(self, sample, ctx: PredictContext):
         pred = super().predict(sample, ctx)
         pred.metadata["sampler"] = self.sampler(ctx)
+        pred.metadata["numerics"] = self.numerics(ctx)
         pred.metadata["scheduler"] = type(self._pipe.scheduler).__name__
         if self._checkpoint_record:
             pred.metadata["checkpoint_loaded"] = dict(self._checkpoint_record)
@@ -314,11 +385,11 @@ class WanPredictor(LocalVideoModel):
         (diffusers' Wan pipeline cleans every prompt with ftfy, which it imports only when installed)."""
         found = self.checkpoint(ctx)
         missing = [pkg for pkg in ("ftfy",) + (("peft",) if found and found["kind"].startswith("lora") else ())
-                   if importlib.util.find_spec(pkg) is None]
+                   if not available(pkg)]
         if missing:
             why = {"ftfy": "diffusers' Wan pipeline cleans every prompt with it", "peft": "to load a LoRA checkpoint"}
-            raise RigidBenchError(f"wan-2.2 needs {'; '.join(f'{pkg} ({why[pkg]})' for pkg in missing)}: "
-                                  f"pip install {' '.join(missing)}")
+            raise RigidBenchError(f"wan-2.2 needs {'; '.join(f'{pkg} ({why[pkg]})' for pkg in missing)}, which "
+                                  f"{'is' if len(missing) == 1 else 'are'} not installed: {install_command('models')}")
 
     def load_pipeline(self, ctx: PredictContext, dtype):
         from diffusers import WanImageToVideoPipeline
@@ -336,16 +407,39 @@ class WanPredictor(LocalVideoModel):
         return pipe
 
     def configure(self, pipe, ctx: PredictContext, injected: bool):
-        """Set the sampler's scheduler and load the checkpoint (an injected pipeline is changed in place)."""
-        from .wan_sampler import use_sampler
+        """Set the sampler's scheduler, load the checkpoint and set the numerics (an injected pipeline is changed
+        in place until ``close``)."""
+        from .wan_diffsynth import TiledEncoder, round_timesteps
+        from .wan_sampler import WanFlowEulerScheduler, use_sampler
 
-        use_sampler(pipe, self.sampler(ctx))
+        scheduler = use_sampler(pipe, self.sampler(ctx))
         found = self.checkpoint(ctx)
-        if found is None or (found["kind"] == "transformer-dir" and not injected):
-            return pipe
-        if found["kind"].startswith("lora"):
-            self._checkpoint_record = load_lora(pipe, found)
-        else:
-            self._checkpoint_record = {"loader": load_full_transformer(pipe, found)}
-        log.info("%s: loaded checkpoint %s (%s)", self.name, found["path"], found["kind"])
+        if found is not None and not (found["kind"] == "transformer-dir" and not injected):
+            if found["kind"].startswith("lora"):
+                self._checkpoint_record = load_lora(pipe, found)
+            else:
+                self._checkpoint_record = {"loader": load_full_transformer(pipe, found)}
+            log.info("%s: loaded checkpoint %s (%s)", self.name, found["path"], found["kind"])
+        numerics = self.numerics(ctx)
+        self._configured = pipe
+        if isinstance(scheduler, WanFlowEulerScheduler):
+            scheduler.update_dtype = numerics["update_dtype"]
+        if numerics["timestep_dtype"] == "bfloat16":
+            self._hooks.append(round_timesteps(pipe.transformer))
+        if numerics["vae_codec"] == "diffsynth-tiled":
+            TiledEncoder.install(pipe.vae)
         return pipe
+
+    def close(self) -> None:
+        """Undo the numerics' changes to the pipeline (hooks, the tiled encoder), then free it."""
+        pipe, self._configured = self._configured, None
+        for hook in self._hooks:
+            hook.remove()
+        self._hooks = []
+        if pipe is not None:
+            from .wan_diffsynth import TiledEncoder
+
+            TiledEncoder.remove(pipe.vae)
+            if hasattr(pipe.scheduler, "update_dtype"):
+                pipe.scheduler.update_dtype = "float32"
+        super().close()

@@ -16,6 +16,12 @@ sigma of 50 steps is 0.024 instead of 0.093); so
 ``WanFlowEulerScheduler`` supplies the grid when none is given and leaves everything else, the Euler
 step included, to diffusers.
 
+The option ``update_dtype`` (``WanFlowEulerScheduler.update_dtype``): "float32" is diffusers' step
+(the sample upcast to float32, x + dt v in float32, the result cast to the model output's dtype, which
+is bfloat16 for the bfloat16 pipeline); "bfloat16" is DiffSynth's (``FlowMatchScheduler.step`` on
+bfloat16 latents: ``sample + model_output * (sigma_ - sigma)``, so dt v is rounded to bfloat16 and
+then the sum; ``diffsynth_euler_step``).
+
 ``unipc``: the pipeline's own scheduler, as the model repository ships it (for
 Wan-AI/Wan2.2-TI2V-5B-Diffusers ``UniPCMultistepScheduler`` with flow_shift 5.0): what this adapter
 used before issue 24.
@@ -27,6 +33,7 @@ import logging
 
 import torch
 from diffusers import FlowMatchEulerDiscreteScheduler
+from diffusers.schedulers.scheduling_flow_match_euler_discrete import FlowMatchEulerDiscreteSchedulerOutput
 
 from ..errors import UserError
 
@@ -41,12 +48,22 @@ def wan_grid(steps: int) -> torch.Tensor:
     return torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float32)[:-1]
 
 
+def diffsynth_euler_step(sample: torch.Tensor, velocity: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
+    """DiffSynth's Euler step on bfloat16 latents, ``sample + velocity * dt``: the product rounded to bfloat16,
+    then the sum (each computed in float32 and rounded once, as torch's bfloat16 arithmetic does on either
+    device; ``dt`` is the float32 sigma difference)."""
+    step = (velocity.to(torch.bfloat16).float() * dt.float()).to(torch.bfloat16)
+    return (sample.to(torch.bfloat16).float() + step.float()).to(torch.bfloat16)
+
+
 class WanFlowEulerScheduler(FlowMatchEulerDiscreteScheduler):
     """diffusers' flow-matching Euler scheduler with DiffSynth's Wan grid as its default sigmas.
 
-    ``replaced``: the scheduler it replaced in a pipeline (restored by ``use_sampler(pipe, "unipc")``)."""
+    ``replaced``: the scheduler it replaced in a pipeline (restored by ``use_sampler(pipe, "unipc")``);
+    ``update_dtype``: "float32" (diffusers' step) or "bfloat16" (``diffsynth_euler_step``)."""
 
     replaced = None
+    update_dtype = "float32"
 
     def set_timesteps(self, num_inference_steps: int | None = None, device=None, sigmas=None, mu=None,
                       timesteps=None):
@@ -55,6 +72,17 @@ class WanFlowEulerScheduler(FlowMatchEulerDiscreteScheduler):
         if sigmas is None and timesteps is None and num_inference_steps is not None:
             sigmas = wan_grid(int(num_inference_steps)).numpy()
         super().set_timesteps(num_inference_steps, device=device, sigmas=sigmas, mu=mu, timesteps=timesteps)
+
+    def step(self, model_output, timestep, sample, *args, **kwargs):
+        """diffusers' step, or with ``update_dtype`` "bfloat16" DiffSynth's (bfloat16 latents out)."""
+        if self.update_dtype != "bfloat16":
+            return super().step(model_output, timestep, sample, *args, **kwargs)
+        if self.step_index is None:
+            self._init_step_index(timestep)
+        dt = self.sigmas[self.step_index + 1] - self.sigmas[self.step_index]
+        prev = diffsynth_euler_step(sample, model_output, dt)
+        self._step_index += 1
+        return FlowMatchEulerDiscreteSchedulerOutput(prev_sample=prev) if kwargs.get("return_dict", True) else (prev,)
 
 
 def flow_euler_scheduler() -> WanFlowEulerScheduler:

@@ -13,6 +13,9 @@ from ..registry import load_target
 
 PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
 INTERVENTION_TAUS = "0.3,0.5,0.7"
+#: command-line destination -> ``recipe.Conditioning`` field
+CONDITIONING_OPTIONS = {"prompt": "prompt", "text_padding": "padding", "clean_slot_timestep": "clean_slot_timestep",
+                        "dtype": "dtype", "objective_dtype": "objective_dtype", "noise": "noise"}
 
 
 def parse_floats(text: str, what: str) -> list[float]:
@@ -34,13 +37,19 @@ def parse_ints(text: str | None, what: str) -> list[int] | None:
         raise UserError(f"{what}: expected comma-separated integers, got {text!r}") from None
 
 
+def conditioning_overrides(args) -> dict:
+    """The conditioning choices given on the command line (``commands.probing``), by ``Conditioning`` field."""
+    return {field: getattr(args, dest) for dest, field in CONDITIONING_OPTIONS.items()
+            if getattr(args, dest, None) is not None}
+
+
 def cmd_extract(args, ctx: RunContext) -> int:
     run_extract = load_target("rigidbench.probe.extract:run_extract", "command")
     summary = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
                           model_path=None if args.model_path is None else str(args.model_path),
                           taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
                           limit=args.limit, progress=not args.no_progress, backbone_seed=args.random_seed,
-                          ids=selected_ids(args))
+                          ids=selected_ids(args), recipe=args.recipe, overrides=conditioning_overrides(args))
     print(f"probe extract ({args.backbone}): {len(summary.extracted)} clips, {summary.rows} actor-slot rows into "
           f"{summary.out} ({len(summary.skipped)} already there, {len(summary.failed)} failed) in "
           f"{summary.seconds:.1f} s")
@@ -79,7 +88,8 @@ def cmd_intervene(args, ctx: RunContext) -> int:
     result = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"), clips=args.clips,
                  blocks=parse_ints(args.blocks, "--blocks"), n_resamples=args.resamples,
                  device=args.net_device or ctx.device, progress=not args.no_progress, full_readout=args.full_readout,
-                 inlp_dtype=args.inlp_dtype, clip_split=args.clip_split)
+                 inlp_dtype=args.inlp_dtype, clip_split=args.clip_split, recipe=args.recipe,
+                 overrides=conditioning_overrides(args), inlp_procedure=args.inlp_procedure)
     print(f"probe intervene: {len(result['clips'])} clips ({result['clips_this_run']} run now), "
           f"{len(result['bases'])} cells ({result['bases_fitted_this_run']} fitted now) into {args.out}")
     _print_redone(result.get("redone", {}), result["clips"])

@@ -2,15 +2,16 @@
 fractions (paper appendix E, "Actor-Aligned Residual Streams"); the layout is in ``store.py``.
 
 For each clip of the preprocessing cache (its normalised reference latent and prompt embedding):
-noise the latent at each tau (``model.noised_batch``: slot 0 kept clean at timestep 0), run the DiT
-with the clip's text, record every block's output with forward hooks, pool it per actor and slot
+noise the latent at each tau (``model.noised_batch``: slot 0 kept clean, at timestep 0 by default), run
+the DiT with the clip's text, record every block's output with forward hooks, pool it per actor and slot
 (``pooling``; masks from the clip's bundle in ``--data``) and attach the simulator targets
 (``targets``).
 
 On the stage driver (``rigidbench.driver``): an item is a clip of the cache, its worker (which loads
 the backbone once) writes the clip's activation file and row table. A clip's key is a digest of the
 settings that determine them (the backbone and its weights, the random backbone's seed, the model,
-the schedule fractions, the noise seed, the forward dtype), of the clip's cache entry
+the schedule fractions, the noise seed, the forward dtype, the conditioning of ``recipe.Conditioning``
+when it is not ours: prompt, padding, slot-0 timestep, precisions, noise), of the clip's cache entry
 (``LatentCache.entry_key``) and of its bundle's masks, trajectories and contacts; so a rerun skips the
 clips extracted this way and extracts again exactly those whose key changed, saying why. The probe
 split of every clip is assigned once (``store.assign_splits`` over the clips of the first run; clips
@@ -33,7 +34,7 @@ import torch
 
 from ..driver import (ItemResult, Selection, Stage, StageReport, StageWorker, digest, read_ledger, run_stage,
                       stage_dir)
-from ..errors import UserError
+from ..errors import ConfigError, UserError
 from ..executors import Executor, Shard
 from ..folders import CONTACTS_FILE, MASKS_FILE, METADATA_FILE, TRAJECTORIES_FILE
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
@@ -41,9 +42,9 @@ from ..jsonio import read_json, write_json
 from ..perception.device import resolve_device
 from ..predictors.wan import detect_checkpoint, fingerprint
 from ..train.cache import LatentCache, bundle_fingerprint, index_lock
-from ..train.objective import FlowMatchingObjective
 from . import model as wan
 from .pooling import pooling_matrix, slot_token_masks
+from .recipe import Conditioning, conditioning_with, recipe, recipe_label
 from .store import MANIFEST, STORE_VERSION, acts_file, assign_splits, cell_name, rows_file
 from .targets import TARGETS, sample_targets
 
@@ -112,7 +113,8 @@ class ExtractStage(Stage):
 
     def __init__(self, backbone: str, cache_dir, data, out, *, model: str | None = None,
                  model_path: str | None = None, taus=wan.DEFAULT_TAUS, device: str | None = None, seed: int = 0,
-                 dtype=torch.float32, backbone_seed: int = wan.RANDOM_SEED, limit: int | None = None):
+                 dtype=None, backbone_seed: int = wan.RANDOM_SEED, limit: int | None = None,
+                 recipe_name: str | None = None, overrides: dict | None = None):
         self.cache = cache = LatentCache(cache_dir)
         model = model or str(cache.manifest["model"])
         if model != cache.manifest["model"]:
@@ -130,7 +132,16 @@ class ExtractStage(Stage):
                                 "`probe fit` and `probe intervene` still read it, but extraction now keeps one file "
                                 "per clip: extract into a new --out")
         self.device = str(torch.device(resolve_device(device)))
-        self.dtype = str(dtype).replace("torch.", "")
+        chosen = recipe(recipe_name)
+        if dtype is not None:
+            overrides = {"dtype": str(dtype).replace("torch.", ""), **(overrides or {})}
+        self.conditioning = cond = conditioning_with(chosen.conditioning, **(overrides or {}))
+        try:
+            cache.check_text(cond.prompt, cond.padding)
+        except ConfigError as e:
+            raise UserError(str(e).split("; ")[0] + "; preprocess again into a new directory, or extract with "
+                            "--prompt task+suffix --text-padding zeros") from None
+        self.dtype = cond.dtype
         self.taus = [float(t) for t in taus]
         self.seed, self.limit, self.backbone = int(seed), limit, str(backbone)
         self.backbone_seed = int(backbone_seed)
@@ -138,15 +149,19 @@ class ExtractStage(Stage):
             else {"backbone_seed": None}
         self.settings = {"version": STORE_VERSION, "backbone": self.backbone, **random, "model": model,
                          "model_path": model_path, "cache": str(Path(cache.dir).resolve()),
-                         "data": str(self.split_dir.resolve()), "schedule": wan.schedule_points(self.taus),
+                         "data": str(self.split_dir.resolve()),
+                         "schedule": wan.schedule_points(self.taus, wan.make_objective(cond)),
+                         "recipe": recipe_label(chosen.name, cond), "conditioning": cond.as_dict(),
                          "tau_mapping": wan.TAU_MAPPING, "num_train_timesteps": wan.NUM_TRAIN_TIMESTEPS,
                          "shift": wan.SHIFT, "seed": self.seed, "latent_shape": list(cache.latent_shape),
                          "frames": int(cache.manifest["frames"]),
                          "targets": {k: list(v) for k, v in TARGETS.items()}, "dtype": "float16", "pooling": POOLING}
         self.model, self.model_path = model, model_path
-        keyed = {k: v for k, v in self.settings.items() if k not in ("backbone", "cache", "data")}
+        keyed = {k: v for k, v in self.settings.items()
+                 if k not in ("backbone", "cache", "data", "recipe", "conditioning")}
+        extra = [] if cond.key_part() is None else [cond.key_part()]  # ours: the keys of earlier stores
         self.settings_key = digest(keyed, backbone_identity(self.backbone, model, model_path, self.backbone_seed),
-                                   self.dtype)
+                                   self.dtype, *extra)
         #: clips of the cache without a bundle in --data (reported as failed, as before)
         self.missing = {i: f"no bundle {i} in {self.split_dir}" for i in cache.ids if i not in self.bundles}
 
@@ -162,14 +177,14 @@ class ExtractStage(Stage):
         return {i: {"dir": str(self.bundles[i].resolve())} for i in self.cache.ids if i in self.bundles}
 
     def key(self, item_id: str, payload: Any) -> str:
-        return digest(self.settings_key, self.cache.entry_key(item_id),
+        return digest(self.settings_key, self.cache.entry_key(item_id, self.conditioning.prompt),
                       bundle_fingerprint(payload["dir"], BUNDLE_FILES))
 
     def job(self) -> dict:
         return {"root": str(self.out.resolve()), "cache": str(Path(self.cache.dir).resolve()),
                 "backbone": self.backbone, "model": self.model, "model_path": self.model_path,
                 "backbone_seed": self.backbone_seed, "device": self.device, "dtype": self.dtype, "taus": self.taus,
-                "seed": self.seed, "settings_key": self.settings_key}
+                "seed": self.seed, "settings_key": self.settings_key, "conditioning": self.conditioning.as_dict()}
 
     def intact(self, item_id: str) -> bool:
         result = (read_ledger(self.out, STAGE, item_id) or {}).get("result") or {}
@@ -250,7 +265,8 @@ class ExtractWorker(StageWorker):
         self.dtype = getattr(torch, job["dtype"])
         self.transformer = wan.load_backbone(job["backbone"], job["model"], job["model_path"], self.dev, self.dtype,
                                              seed=job["backbone_seed"])
-        self.obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, self.transformer.config.patch_size)
+        self.conditioning = Conditioning.from_record(job.get("conditioning"))
+        self.obj = wan.make_objective(self.conditioning, self.transformer.config.patch_size)
         self.grid = tuple(wan.token_grid(self.cache.latent_shape, self.transformer.config.patch_size))
         self.frames = int(self.cache.manifest["frames"])
         config = self.transformer.config
@@ -264,13 +280,14 @@ class ExtractWorker(StageWorker):
         table["clip"] = np.array([item_id] * len(w), dtype=str)
         outputs = []
         if len(w):
-            latent, text = self.cache.batch([self.cache.ids.index(item_id)], dtype=torch.float32)
+            cond = self.conditioning
+            latent, text = self.cache.batch([self.cache.ids.index(item_id)], dtype=torch.float32, prompt=cond.prompt,
+                                            padding=cond.padding)
             wt = torch.as_tensor(w, device=self.dev)
             acts = {}
             taus = self.job["taus"]
             for n, tau in enumerate(taus):
-                batch = self.obj.prepare(latent, wan.clip_noise(item_id, latent.shape, self.job["seed"]),
-                                         wan.tau_index(tau))
+                batch = wan.noised_batch(latent[0], item_id, tau, self.obj, self.job["seed"], cond)
                 store: dict = {}
                 with torch.no_grad(), wan.capture_blocks(self.transformer, store):
                     wan.forward(self.transformer, batch, text, self.dev, self.dtype)
@@ -293,16 +310,20 @@ class ExtractWorker(StageWorker):
 
 def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None, model_path: str | None = None,
                 taus=wan.DEFAULT_TAUS, device: str | None = None, limit: int | None = None,
-                chunk_size: int | None = None, seed: int = 0, progress: bool = True, dtype=torch.float32,
+                chunk_size: int | None = None, seed: int = 0, progress: bool = True, dtype=None,
                 backbone_seed: int = wan.RANDOM_SEED, ids=None, shard: Shard | None = None,
-                executor: Executor | None = None) -> ExtractSummary:
+                executor: Executor | None = None, recipe: str | None = None,
+                overrides: dict | None = None) -> ExtractSummary:
     """Extract the first ``limit`` clips of the cache (or the ``ids``; this ``shard``'s part) into the store
-    ``out``. ``chunk_size`` is accepted for older callers and unused (version 3 keeps one file pair per clip)."""
+    ``out``, conditioned as the ``recipe`` (``ours`` or ``release``) with ``overrides`` of its choices
+    (``recipe.Conditioning`` fields; ``dtype``, when given, is the forward precision). ``chunk_size`` is
+    accepted for older callers and unused (version 3 keeps one file pair per clip)."""
     import time
 
     start = time.perf_counter()
     stage = ExtractStage(backbone, cache_dir, data, out, model=model, model_path=model_path, taus=taus,
-                         device=device, seed=seed, dtype=dtype, backbone_seed=backbone_seed, limit=limit)
+                         device=device, seed=seed, dtype=dtype, backbone_seed=backbone_seed, limit=limit,
+                         recipe_name=recipe, overrides=overrides)
     report = run_stage(stage, Selection.of(ids, limit, shard), executor, progress=progress)
     rows = {i: int(report.results[i].get("rows", 0)) for i in report.ran}
     return ExtractSummary(out=Path(out), extracted=[i for i in report.ran if rows[i]], skipped=list(report.reused),

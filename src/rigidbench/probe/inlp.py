@@ -15,9 +15,23 @@ default, as the release's ridge). Because every regressor lies in the complement
 far, the projected problem needs only G: with P = I - B B^T, (P X^T X P + lam n I) W = P X^T y, and the
 projected predictions are X W. Each iteration is then one D x D solve plus one pass of X W for the
 R^2 values; the release instead projects the (n, D) matrix and re-forms its Gram every iteration.
-The result is the same up to rounding (tested against a direct implementation of the release's
-steps). Torch on ``device`` (default CUDA when available, else the CPU); activations stay float32
-and are cast chunk by chunk (``chunk_rows``).
+In exact arithmetic the two are the same, and this one equals the release's steps computed in
+float64 up to rounding (tested); it is not what the release's float32 steps give (below). Torch on
+``device`` (default CUDA when available, else the CPU); activations stay float32 and are cast chunk by
+chunk (``chunk_rows``).
+
+Procedures (``procedure``): ``"stable"`` (the default) is the computation above. ``"release"``
+follows the authors' release literally (``inlp_release``): the training rows in the permutation's
+order (not sorted), float32 on ``device``; each round solves the ridge in float64 from the float32
+projected rows, casts the regressor W (k, D) to float32, scores it by the pooled R^2 computed in
+float32 (stopping when R^2 < 0.05, so a NaN R^2 does not stop it), takes the null space of W by a
+float32 SVD (singular values above 1e-6 of the largest count as its rank) and replaces the rows by
+their float32 projection (X B) B^T onto that null space; at the end the stacked regressors' null
+space N (same rule, float32), the float32 projector P = N N^T, and the basis is the null space of P
+by the same rule, so its rank is D minus the number of P's singular values above 1e-6 of the
+largest. Float32 rounding accumulates over the rounds and the last two steps count rounding noise
+of P as rank, so the two procedures part on real activations (docs/probing.md, "INLP procedures").
+The held-out R^2 of each round is ours (the rows projected the same way; R^2 in float64).
 
 Controls: a random orthonormal basis of the same rank (the release's: a float32 Gaussian (D, rank)
 matrix from a torch generator seeded ``seed + 1``, then QR; drawn on the CPU here, on the GPU in the
@@ -41,6 +55,7 @@ from ..perception.device import resolve_device
 RIDGE = 0.05        # ridge coefficient per training row (the release's reg * N)
 MIN_R2 = 0.05       # stop when a new regressor's training R^2 falls below this
 MAX_ITER = 30
+PROCEDURES = ("stable", "release")  # ours (the default) | the release's float32 steps, literally
 RANK_TOL = 1e-6     # singular values above RANK_TOL x the largest count towards a row space
 TRAIN_FRACTION = 0.8
 
@@ -133,6 +148,8 @@ class INLPResult:
     device: str = "cpu"
     dtype: str = "float64"
     seconds: float = 0.0
+    procedure: str = "stable"
+    rounds: int = 0                         # regressors added to the basis
     covariance: np.ndarray | None = None    # (D, D) covariance of the training rows (keep_covariance=True)
 
     @property
@@ -142,9 +159,15 @@ class INLPResult:
 
 def inlp(x, y, ridge: float = RIDGE, min_r2: float = MIN_R2, max_iter: int = MAX_ITER,
          train_fraction: float = TRAIN_FRACTION, seed: int = 0, device=None, dtype=torch.float64,
-         chunk_rows: int = 16384, keep_covariance: bool = False) -> INLPResult:
+         chunk_rows: int = 16384, keep_covariance: bool = False, procedure: str = "stable") -> INLPResult:
     """INLP basis of the target ``y`` (n, k) in the activations ``x`` (n, D); see the module docstring.
-    ``keep_covariance`` also returns the training rows' covariance (for the PC control)."""
+    ``keep_covariance`` also returns the training rows' covariance (for the PC control).
+    ``procedure="release"``: the release's float32 steps (``inlp_release``; ``dtype`` does not apply)."""
+    if procedure == "release":
+        return inlp_release(x, y, ridge=ridge, min_r2=min_r2, max_iter=max_iter, train_fraction=train_fraction,
+                            seed=seed, device=device, chunk_rows=chunk_rows, keep_covariance=keep_covariance)
+    if procedure != "stable":
+        raise ValueError(f"unknown INLP procedure {procedure!r}; use one of {PROCEDURES}")
     t0 = time.perf_counter()
     dev = torch.device(resolve_device(None if device is None else str(device)))
     n = len(x)
@@ -186,16 +209,96 @@ def inlp(x, y, ridge: float = RIDGE, min_r2: float = MIN_R2, max_iter: int = MAX
             new = new - basis @ (basis.T @ new)
             new, _ = torch.linalg.qr(new)
         basis = torch.cat([basis, new], dim=1)
+    result.rounds = len(added)
     if added:
         result.basis = row_space(torch.cat(added, dim=1)).to(torch.float64).cpu().numpy()
     if keep_covariance:
-        mean = col_sum / max(train.n, 1)
-        cov = (g - train.n * torch.outer(mean, mean)) / max(train.n - 1, 1)
-        result.covariance = ((cov + cov.T) / 2).to(torch.float64).cpu().numpy()
+        result.covariance = _covariance(g, col_sum, train.n)
+    return _finish(result, dev, t0)
+
+
+def _covariance(g: torch.Tensor, col_sum: torch.Tensor, n: int) -> np.ndarray:
+    """The (D, D) float64 covariance of n rows from their Gram matrix and column sums."""
+    mean = col_sum / max(n, 1)
+    cov = (g - n * torch.outer(mean, mean)) / max(n - 1, 1)
+    return ((cov + cov.T) / 2).to(torch.float64).cpu().numpy()
+
+
+def _finish(result: INLPResult, dev: torch.device, t0: float) -> INLPResult:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _null_space(w: torch.Tensor, tol: float = RANK_TOL) -> torch.Tensor:
+    """The release's null-space rule: rows r.. of Vh of a full SVD of ``w`` (m, D), r the number of singular
+    values above ``tol`` x the largest; (D, D - r), in ``w``'s dtype."""
+    _, s, vh = torch.linalg.svd(w, full_matrices=True)
+    smax = float(s.max()) if s.numel() else 0.0
+    r = int((s > tol * smax).sum()) if smax > 0 else 0
+    return vh[r:].T
+
+
+def _release_r2(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> float:
+    """The release's pooled R^2 of ``x @ w.T`` for ``y``, in the tensors' precision (float32)."""
+    pred = x @ w.T
+    ss_res = float(((y - pred) ** 2).sum())
+    ss_tot = float(((y - y.mean(0)) ** 2).sum())
+    return 1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan")
+
+
+def inlp_release(x, y, ridge: float = RIDGE, min_r2: float = MIN_R2, max_iter: int = MAX_ITER,
+                 train_fraction: float = TRAIN_FRACTION, seed: int = 0, device=None, chunk_rows: int = 16384,
+                 keep_covariance: bool = False, rows_dtype=torch.float32) -> INLPResult:
+    """INLP as the release computes it (module docstring, "Procedures"): float32 rows re-projected one
+    regressor at a time, the rank of the stacked regressors, the basis from the float32 projector. Holds
+    the n training rows in float32 on ``device`` and a float64 copy while a round's ridge is solved, or two
+    float32 copies while they are projected, and the held-out rows: about 13 n D bytes at the peak.
+    ``rows_dtype=torch.float64`` runs the same steps in float64 (a measurement aid:
+    ``benchmarks/inlp_procedures.py``)."""
+    t0 = time.perf_counter()
+    dev = torch.device(resolve_device(None if device is None else str(device)))
+    n = len(x)
+    xt = torch.as_tensor(x) if not torch.is_tensor(x) else x
+    yt = torch.as_tensor(np.asarray(y, dtype=np.float64).reshape(n, -1))
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(int(seed)))
+    cut = int(train_fraction * n)
+    tr, ho = order[:cut], order[cut:]  # the permutation's order, as the release indexes them
+    x_tr = xt[tr].to(device=dev, dtype=rows_dtype)
+    x_ho = xt[ho].to(device=dev, dtype=rows_dtype)
+    y_tr, y_ho = yt[tr].to(device=dev, dtype=rows_dtype), yt[ho].to(device=dev, dtype=rows_dtype)
+    d = int(x_tr.shape[1])
+    precision = str(rows_dtype).replace("torch.", "")
+    result = INLPResult(basis=np.zeros((d, 0)), stopped="iterations", train_rows=len(tr), heldout_rows=len(ho),
+                        device=str(dev), dtype=f"{precision} (ridge solved in float64)", procedure="release")
+    x_proj, h_proj = x_tr, x_ho  # replaced, never changed in place (the release clones)
+    del x_tr, x_ho
+    eye = torch.eye(d, device=dev, dtype=torch.float64)
+    collected: list[torch.Tensor] = []
+    for _ in range(max_iter):
+        xd = x_proj.double()
+        w = torch.linalg.solve(xd.T @ xd + ridge * len(xd) * eye, xd.T @ y_tr.double()).T.to(rows_dtype)
+        del xd
+        r2 = _release_r2(w, x_proj, y_tr)
+        result.train_r2.append(r2)
+        result.heldout_r2.append(_pooled_r2(y_ho.double(), (h_proj @ w.T).double()) if len(ho) > 1
+                                 else float("nan"))
+        if r2 < min_r2:
+            result.stopped = "r2"
+            break
+        collected.append(w)
+        null = _null_space(w)
+        x_proj = (x_proj @ null) @ null.T
+        h_proj = (h_proj @ null) @ null.T
+    result.rounds = len(collected)
+    if collected:
+        joint = _null_space(torch.cat(collected, dim=0))
+        result.basis = _null_space(joint @ joint.T).to(torch.float64).cpu().numpy()
+    if keep_covariance:
+        g, col_sum, _ = Rows(xt, np.sort(tr.numpy()), dev, torch.float64, chunk_rows).gram()
+        result.covariance = _covariance(g, col_sum, len(tr))
+    return _finish(result, dev, t0)
 
 
 def project_out(x: np.ndarray, basis: np.ndarray, alpha: float = 1.0) -> np.ndarray:

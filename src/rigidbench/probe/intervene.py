@@ -2,14 +2,16 @@
 (paper appendix E, "Position-Aligned Interventions").
 
 Per block x tau cell: the position basis by INLP on all the store's rows (``inlp.inlp``: the
-release's ridge and pooled R^2, 80/20 row split inside, torch on CUDA when available), a random
+release's ridge and pooled R^2, 80/20 row split inside, torch on CUDA when available; ``procedure``
+``stable``, ours, or ``release``, the release's float32 steps), a random
 orthonormal basis of the same rank, and the variance-matched top-K principal components with their
 alpha (variances from INLP's training rows, as in the release). The clips are the first ``clips`` of
 the store's clips sorted by id (``clip_split="all"``, the release's: its first 100 ids of the
 training corpus, whatever their probe split), or of its training-split clips (``"train"``). Bases
 fitted by an older INLP (``BASES_VERSION``) are refitted, not reused. For each chosen clip, under the
-same noised latent as extraction: the baseline forward (recording every block's output and the time embedding), then per
-block and variant
+same noised latent and text as extraction (the store's ``recipe.Conditioning``, unless the caller
+names another recipe or choice; a conditioning other than the store's is logged): the baseline
+forward (recording every block's output and the time embedding), then per block and variant
 
 * full model: the block's output h is replaced by h - alpha (h B) B^T on every token and the forward
   continues through the remaining blocks and the head (``full_readout="resume"``, the default: from
@@ -22,16 +24,17 @@ Loss: unweighted MSE to the velocity target over slots 1.. (slot 0 is the clean 
 At the last block both readouts are the same computation. Clip-level means over blocks and taus are
 bootstrapped over clips (``rigidbench.stats.bootstrap_ci``, 20,000 resamples, seed 0).
 
-Outputs: bases/b00_tau0.3.npz, bases.csv (rank, K, alpha, variances, INLP R^2 path), effects/<clip>.jsonl
-and effects.jsonl (all of them: one line per clip x block x tau x variant x readout), effects_by_cell.csv,
-summary.csv and intervene.json.
+Outputs: bases/b00_tau0.3.npz, bases.csv (procedure, rank, rounds and 3 x rounds, K, alpha, variances,
+INLP R^2 path), effects/<clip>.jsonl and effects.jsonl (all of them: one line per clip x block x tau x
+variant x readout), effects_by_cell.csv, summary.csv and intervene.json.
 
 On the stage driver (``rigidbench.driver``), in two stages. ``probe-bases``: an item is a block x tau
 cell, its key the store's content (every clip's extraction key and the store's settings) and INLP's
-settings (``BASES_VERSION``, ridge, stopping R^2, iterations, dtype); so a store that gained or changed
-clips has its bases fitted again, and bases files made before ledgers existed (or copied from another
+settings (``BASES_VERSION``, ridge, stopping R^2, iterations, dtype, procedure); so a store that gained
+or changed clips has its bases fitted again, and bases files made before ledgers existed (or copied from another
 output folder of the same store) are reused when they say they were fitted this way. ``probe-intervene``:
-an item is a clip, its key the intervention settings (taus, blocks, readout, dtype), the store, every
+an item is a clip, its key the intervention settings (taus, blocks, readout, dtype, the conditioning
+when it is not ours), the store, every
 cell's bases (their digests), the clip's extraction key and its cache entry; a rerun skips the clips
 done this way and redoes exactly those whose key changed, saying why. The summary tables are computed
 after every run over the selected clips that are done (``--resamples`` alone redoes no clip). An
@@ -43,6 +46,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -56,11 +60,13 @@ from ..errors import UserError
 from ..perception.device import resolve_device
 from ..stats.bootstrap import bootstrap_ci
 from ..train.cache import LatentCache
-from ..train.objective import FlowMatchingObjective
 from . import model as wan
-from .inlp import (MAX_ITER, MIN_R2, RIDGE, inlp, random_orthonormal, removed_variance,
+from .inlp import (MAX_ITER, MIN_R2, PROCEDURES, RIDGE, inlp, random_orthonormal, removed_variance,
                    total_variance, variance_matched_pcs)
+from .recipe import Conditioning, conditioning_with, recipe, recipe_label
 from .store import ActivationStore, atomic_json, tau_name
+
+log = logging.getLogger(__name__)
 
 VARIANTS = ("position", "pc", "random")
 READOUTS = ("full", "direct")
@@ -71,18 +77,21 @@ BASES_VERSION = 2  # 2: the release's INLP (uncentred ridge scaled by rows, pool
 
 
 def fit_bases(x: np.ndarray, position: np.ndarray, ridge: float = RIDGE, min_r2: float = MIN_R2,
-              max_iter: int = MAX_ITER, seed: int = 0, device=None, dtype=torch.float64) -> dict:
+              max_iter: int = MAX_ITER, seed: int = 0, device=None, dtype=torch.float64,
+              procedure: str = "stable") -> dict:
     """The three bases of one cell: {"position", "random", "pc": (D, r) arrays, "alpha_pc", facts...}.
-    INLP on all rows (80/20 split inside); the controls from the INLP training rows, as the release."""
+    INLP (``procedure``) on all rows (80/20 split inside); the controls from the INLP training rows, as the
+    release."""
     res = inlp(x, position, ridge=ridge, min_r2=min_r2, max_iter=max_iter, seed=seed, device=device, dtype=dtype,
-               keep_covariance=True)
+               keep_covariance=True, procedure=procedure)
     cov = res.covariance
     pc = variance_matched_pcs(None, res.basis, cov, device=res.device)
     rand = random_orthonormal(res.basis.shape[0], res.rank, seed + 1)
     return {"position": res.basis, "random": rand, "pc": pc.basis, "alpha_pc": pc.alpha, "rank": res.rank,
             "k_pc": pc.k, "removed_variance": pc.target_variance, "top_k_variance": pc.top_variance,
             "random_removed_variance": removed_variance(None, rand, cov), "total_variance": total_variance(None, cov),
-            "iterations": len(res.train_r2), "stopped": res.stopped, "train_r2": res.train_r2,
+            "iterations": len(res.train_r2), "rounds": res.rounds, "procedure": res.procedure,
+            "stopped": res.stopped, "train_r2": res.train_r2,
             "heldout_r2": res.heldout_r2, "train_rows": res.train_rows, "heldout_rows": res.heldout_rows,
             "inlp_seconds": res.seconds, "inlp_device": res.device, "inlp_dtype": res.dtype,
             "version": BASES_VERSION}
@@ -113,10 +122,22 @@ def _load_bases(path: Path) -> tuple[dict, dict]:
     return cell, json.loads(str(cell.pop("facts")))
 
 
-def bases_key(store_digest: str, inlp_dtype: str, block: int, tau: float) -> str:
-    """What determines a cell's bases: the store's rows and activations, the cell, INLP's settings."""
+def bases_key(store_digest: str, inlp_dtype: str, block: int, tau: float, procedure: str = "stable") -> str:
+    """What determines a cell's bases: the store's rows and activations, the cell, INLP's settings (the
+    release's procedure has its own precision; the stable one keeps the keys of bases made before it)."""
+    if procedure == "release":
+        return digest("inlp-bases", BASES_VERSION, store_digest, int(block), float(tau), RIDGE, MIN_R2, MAX_ITER, 0,
+                      "release")
     return digest("inlp-bases", BASES_VERSION, store_digest, int(block), float(tau), RIDGE, MIN_R2, MAX_ITER, 0,
                   str(inlp_dtype))
+
+
+def rounds_of(facts: dict) -> int:
+    """Regressors a cell's INLP added (bases facts of any version: the rounds run, less a last one that
+    stopped on R^2)."""
+    if "rounds" in facts:
+        return int(facts["rounds"])
+    return len(facts.get("train_r2") or []) - (facts.get("stopped") == "r2")
 
 
 class BasesStage(Stage):
@@ -130,9 +151,9 @@ class BasesStage(Stage):
     unit = "cell"
 
     def __init__(self, store: ActivationStore, out: Path, cells: list[tuple[int, float]], device: str,
-                 inlp_dtype: str):
+                 inlp_dtype: str, procedure: str = "stable"):
         self.store, self.out, self.cells = store, Path(out), cells
-        self.device, self.inlp_dtype = device, inlp_dtype
+        self.device, self.inlp_dtype, self.procedure = device, inlp_dtype, procedure
         self.store_digest = digest(store.identity)
 
     @property
@@ -143,11 +164,11 @@ class BasesStage(Stage):
         return {cell_id(b, tau): {"block": b, "tau": tau} for b, tau in self.cells}
 
     def key(self, item_id: str, payload: Any) -> str:
-        return bases_key(self.store_digest, self.inlp_dtype, payload["block"], payload["tau"])
+        return bases_key(self.store_digest, self.inlp_dtype, payload["block"], payload["tau"], self.procedure)
 
     def job(self) -> dict:
         return {"acts": str(self.store.dir.resolve()), "store_digest": self.store_digest, "device": self.device,
-                "inlp_dtype": self.inlp_dtype}
+                "inlp_dtype": self.inlp_dtype, "procedure": self.procedure}
 
     def intact(self, item_id: str) -> bool:
         """The cell's bases file is there and says it was fitted with the ledger's key (not, e.g., copied over
@@ -183,9 +204,11 @@ class BasesWorker(StageWorker):
 
     def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
         b, tau = int(payload["block"]), float(payload["tau"])
-        fitted = fit_bases(self.store.cell(b, tau), self.position, device=self.device, dtype=self.dtype)
+        procedure = self.job.get("procedure", "stable")
+        fitted = fit_bases(self.store.cell(b, tau), self.position, device=self.device, dtype=self.dtype,
+                           procedure=procedure)
         info = {k: v for k, v in fitted.items() if k not in ("position", "random", "pc")}
-        info["key"] = bases_key(self.job["store_digest"], self.job["inlp_dtype"], b, tau)
+        info["key"] = bases_key(self.job["store_digest"], self.job["inlp_dtype"], b, tau, procedure)
         cell = {k: fitted[k].astype(np.float32) for k in ("position", "random", "pc")}
         rel = f"bases/{item_id}.npz"
         (staging / "bases").mkdir()
@@ -201,11 +224,15 @@ class InterveneStage(Stage):
     unit = "clip"
 
     def __init__(self, store: ActivationStore, cache: LatentCache, out: Path, clips: list[str], *, taus, blocks,
-                 full_readout: str, dtype: str, device: str, bases: dict[str, str]):
+                 full_readout: str, device: str, bases: dict[str, str],
+                 conditioning: Conditioning = Conditioning()):
         self.store, self.cache, self.out, self.clips = store, cache, Path(out), clips
+        self.conditioning = conditioning
         man = store.manifest
-        self.settings = {"taus": taus, "blocks": blocks, "full_readout": full_readout, "dtype": dtype,
+        self.settings = {"taus": taus, "blocks": blocks, "full_readout": full_readout, "dtype": conditioning.dtype,
                          "variants": list(VARIANTS), "readouts": list(READOUTS)}
+        if conditioning.key_part() is not None:  # ours: the keys of outputs made before the option
+            self.settings["conditioning"] = conditioning.key_part()
         self.backbone = {"backbone": man["backbone"], "model": man["model"], "model_path": man.get("model_path"),
                          "backbone_seed": man.get("backbone_seed"), "seed": man["seed"]}
         self.device = device
@@ -225,11 +252,12 @@ class InterveneStage(Stage):
         return {c: {} for c in self.clips}
 
     def key(self, item_id: str, payload: Any) -> str:
-        return digest(self.settings_key, self.store.clip_key(item_id), self.cache.entry_key(item_id))
+        return digest(self.settings_key, self.store.clip_key(item_id),
+                      self.cache.entry_key(item_id, self.conditioning.prompt))
 
     def job(self) -> dict:
         return {"root": str(self.out.resolve()), "cache": str(Path(self.cache.dir).resolve()), **self.settings,
-                **self.backbone, "device": self.device}
+                **self.backbone, "device": self.device, "conditioning": self.conditioning.as_dict()}
 
     def intact(self, item_id: str) -> bool:
         return (self.out / effects_file(item_id)).is_file()
@@ -251,7 +279,8 @@ class InterveneWorker(StageWorker):
         seed = wan.RANDOM_SEED if job.get("backbone_seed") is None else int(job["backbone_seed"])
         self.transformer = wan.load_backbone(job["backbone"], job["model"], job.get("model_path"), self.dev,
                                              self.dtype, seed=seed)
-        self.obj = FlowMatchingObjective(wan.NUM_TRAIN_TIMESTEPS, wan.SHIFT, self.transformer.config.patch_size)
+        self.conditioning = Conditioning.from_record(job.get("conditioning"))
+        self.obj = wan.make_objective(self.conditioning, self.transformer.config.patch_size)
         self.bases, self.alphas = {}, {}
         for b in job["blocks"]:
             for tau in job["taus"]:
@@ -262,11 +291,13 @@ class InterveneWorker(StageWorker):
 
     def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
         transformer, dev, dtype, clip = self.transformer, self.dev, self.dtype, item_id
-        latent, text = self.cache.batch([self.cache.ids.index(clip)], dtype=torch.float32)
+        cond = self.conditioning
+        latent, text = self.cache.batch([self.cache.ids.index(clip)], dtype=torch.float32, prompt=cond.prompt,
+                                        padding=cond.padding)
         lines = []
         taus = self.job["taus"]
         for n, tau in enumerate(taus):
-            batch = self.obj.prepare(latent, wan.clip_noise(clip, latent.shape, self.job["seed"]), wan.tau_index(tau))
+            batch = wan.noised_batch(latent[0], clip, tau, self.obj, self.job["seed"], cond)
             captured: dict = {}
             with torch.no_grad(), wan.capture_blocks(transformer, captured), \
                     wan.capture_block_inputs(transformer, captured):
@@ -305,12 +336,17 @@ class InterveneWorker(StageWorker):
 
 def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, blocks=None,
                   n_resamples: int = 20000, device: str | None = None, progress: bool = True,
-                  dtype=torch.float32, full_readout: str = "resume", inlp_dtype=torch.float64,
-                  clip_split: str = "all") -> dict:
+                  dtype=None, full_readout: str = "resume", inlp_dtype=torch.float64,
+                  clip_split: str = "all", recipe: str | None = None, overrides: dict | None = None,
+                  inlp_procedure: str | None = None) -> dict:
     """The bases of every block x tau cell (stage ``probe-bases``), then the loss changes on the first
-    ``clips`` clips (stage ``probe-intervene``), then the bootstrap tables over the clips done."""
+    ``clips`` clips (stage ``probe-intervene``), then the bootstrap tables over the clips done.
+    Conditioning and INLP procedure: those of ``recipe`` (default: the recipe the store was extracted with,
+    and the store's own conditioning), with ``overrides`` of its choices (``dtype``, when given, is the
+    forward precision) and ``inlp_procedure`` instead of the recipe's."""
     store = ActivationStore(acts)
     man = store.manifest
+    cond, procedure, label = _intervention_recipe(store, recipe, overrides, dtype, inlp_procedure)
     taus = [float(t) for t in taus]
     for t in taus:
         if not any(abs(t - s) < 1e-9 for s in store.taus):
@@ -328,7 +364,8 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
 
     # 1. bases per cell (on the full activation corpus)
     cells = [(b, tau) for b in blocks for tau in taus]
-    fitted = run_stage(BasesStage(store, out, cells, str(inlp_dev), inlp_dtype), Selection(), progress=progress)
+    fitted = run_stage(BasesStage(store, out, cells, str(inlp_dev), inlp_dtype, procedure), Selection(),
+                       progress=progress)
     if fitted.failed:
         raise UserError(f"{acts}: the bases of {len(fitted.failed)} cell(s) could not be fitted ("
                         + "; ".join(f"{k}: {v}" for k, v in list(fitted.failed.items())[:3]) + ")")
@@ -337,13 +374,15 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
         info = {k: v for k, v in fitted.results[cell_id(b, tau)].items() if k not in ("key", "digest")}
         facts.append({"block": b, "tau": tau, **info})
     with (out / "bases.csv").open("w", newline="") as fh:
-        cols = ["block", "tau", "rank", "iterations", "stopped", "k_pc", "alpha_pc", "removed_variance",
-                "top_k_variance", "random_removed_variance", "total_variance", "final_train_r2", "first_heldout_r2",
-                "last_heldout_r2", "train_rows", "heldout_rows", "inlp_seconds", "inlp_device", "inlp_dtype"]
+        cols = ["block", "tau", "procedure", "rank", "rounds", "rounds_x3", "iterations", "stopped", "k_pc",
+                "alpha_pc", "removed_variance", "top_k_variance", "random_removed_variance", "total_variance",
+                "final_train_r2", "first_heldout_r2", "last_heldout_r2", "train_rows", "heldout_rows", "inlp_seconds",
+                "inlp_device", "inlp_dtype"]
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
         for f in facts:
-            w.writerow({**f, "final_train_r2": f["train_r2"][-1] if f["train_r2"] else "",
+            w.writerow({**f, "procedure": f.get("procedure", "stable"), "rounds": rounds_of(f),
+                        "rounds_x3": 3 * rounds_of(f), "final_train_r2": f["train_r2"][-1] if f["train_r2"] else "",
                         "first_heldout_r2": f["heldout_r2"][0] if f["heldout_r2"] else "",
                         "last_heldout_r2": f["heldout_r2"][-1] if f["heldout_r2"] else ""})
 
@@ -356,7 +395,7 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
         raise UserError(f"{acts}: no {'training-split ' if clip_split == 'train' else ''}clips of the store are in "
                         f"the cache {cache_dir}")
     stage = InterveneStage(store, cache, out, candidates, taus=taus, blocks=blocks, full_readout=full_readout,
-                           dtype=str(dtype).replace("torch.", ""), device=str(resolve_device(device)),
+                           device=str(resolve_device(device)), conditioning=cond,
                            bases={cell_id(b, tau): fitted.results[cell_id(b, tau)]["digest"] for b, tau in cells})
     report = run_stage(stage, Selection.of(limit=clips), progress=progress)
     done = report.succeeded
@@ -372,13 +411,41 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
                                                         "model": man["model"], "taus": taus, "blocks": blocks,
                                                         "clips": done, "seconds_this_run": seconds,
                                                         "full_readout": full_readout, "clip_split": clip_split,
-                                                        "inlp": {"ridge_per_row": RIDGE, "min_r2": MIN_R2,
+                                                        "recipe": label, "conditioning": cond.as_dict(),
+                                                        "store_conditioning": store.conditioning.as_dict(),
+                                                        "inlp": {"procedure": procedure, "ridge_per_row": RIDGE,
+                                                                 "min_r2": MIN_R2,
                                                                  "max_iter": MAX_ITER, "intercept": False,
                                                                  "centred": False, "r2": "pooled",
-                                                                 "dtype": inlp_dtype, "device": str(inlp_dev)},
+                                                                 "dtype": inlp_dtype if procedure == "stable" else
+                                                                 "float32 (ridge solved in float64)",
+                                                                 "device": str(inlp_dev)},
                                                         "clips_this_run": len(report.ran),
                                                         "bases_fitted_this_run": len(fitted.ran),
                                                         "failed": report.failed, "redone": report.redone})
+
+
+def _intervention_recipe(store: ActivationStore, name: str | None, overrides: dict | None, dtype,
+                         inlp_procedure: str | None) -> tuple[Conditioning, str, str]:
+    """(conditioning, INLP procedure, recipe label) of an intervention on ``store`` (``run_intervene``)."""
+    if name is None:
+        chosen = recipe(store.recipe.split("+")[0])
+        base = store.conditioning
+    else:
+        chosen = recipe(name)
+        base = chosen.conditioning
+    if dtype is not None:
+        overrides = {"dtype": str(dtype).replace("torch.", ""), **(overrides or {})}
+    cond = conditioning_with(base, **(overrides or {}))
+    procedure = inlp_procedure or chosen.inlp
+    if procedure not in PROCEDURES:
+        raise UserError(f"INLP procedure must be one of {', '.join(PROCEDURES)}, got {procedure!r}")
+    if cond != store.conditioning:
+        differ = {k: (v, store.conditioning.as_dict()[k]) for k, v in cond.as_dict().items()
+                  if v != store.conditioning.as_dict()[k]}
+        log.warning("%s: intervening with conditioning other than the store's extraction (%s)", store.dir,
+                    ", ".join(f"{k} {a} instead of {b}" for k, (a, b) in differ.items()))
+    return cond, procedure, recipe_label(chosen.name, cond, procedure)
 
 
 def summarize(effects: list[dict], facts: list[dict], out: Path, n_resamples: int, meta: dict) -> dict:

@@ -9,7 +9,11 @@ the five and tau = 0.9 the least noisy: indices 100, 300, 500, 699, 899 and sigm
 0.833, 0.683, 0.360 for tau = 0.1, 0.3, 0.5, 0.7, 0.9. The transformer sees timestep N sigma on every
 token but those of slot 0, which stay clean at timestep 0 (``train.objective.FlowMatchingObjective
 .prepare``, as in training). The noise of a clip is drawn from a CPU generator seeded with a hash of
-(seed 0, clip id), the same for every tau, block and backbone.
+(seed 0, clip id), the same for every tau, block and backbone. These are the defaults (recipe ``ours``);
+``recipe.Conditioning`` names the release's choices (``make_objective``, ``noise_for``): the one timestep on
+every token, bfloat16-rounded timesteps (the model sees t rounded to bfloat16, sigma is that of the
+schedule timestep nearest it: indices 93, 303, 502, 698, 899 for the five taus), and one noise tensor
+shared by every clip (a CPU draw seeded with the seed; the release drew it on the GPU in bfloat16).
 
 Random backbone (the release's ``reset_dit_parameters``): the pretrained DiT with every submodule
 that has ``reset_parameters()`` re-initialised, in module order, from one seed: linear and
@@ -27,11 +31,13 @@ import hashlib
 from contextlib import contextmanager
 from types import SimpleNamespace
 
+import numpy as np
 import torch
 
 from ..errors import UserError
 from ..predictors.wan import detect_checkpoint, load_full_transformer, load_lora
 from ..train.objective import FlowMatchingObjective
+from .recipe import Conditioning
 
 DEFAULT_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)
 NUM_TRAIN_TIMESTEPS = 1000
@@ -49,12 +55,37 @@ def tau_index(tau: float, n: int = NUM_TRAIN_TIMESTEPS) -> int:
     return min(n - 1, max(0, int(round(tau * (n - 1)))))
 
 
+def effective_step(index: int, objective: FlowMatchingObjective) -> tuple[int, float]:
+    """(the schedule index whose sigma is used, the timestep the model sees) at schedule index ``index``:
+    ``index`` and its timestep, or under ``objective.dtype == "bfloat16"`` the timestep rounded to
+    bfloat16 and the index of the schedule timestep nearest it (``FlowMatchingObjective.prepare``)."""
+    t = float(objective.timesteps[index])
+    if objective.dtype != "bfloat16":
+        return int(index), t
+    t = float(torch.tensor(t, dtype=torch.float32).to(torch.bfloat16))
+    return int(np.argmin(np.abs(objective.timesteps - t))), t
+
+
 def schedule_points(taus, objective: FlowMatchingObjective | None = None) -> list[dict]:
-    """[{"tau", "index", "sigma", "timestep"}] for the schedule fractions ``taus``."""
+    """[{"tau", "index", "sigma", "timestep"}] for the schedule fractions ``taus``: sigma and the timestep
+    the model sees; under a bfloat16 objective also "schedule_index", the index that sigma belongs to."""
     obj = objective or FlowMatchingObjective(NUM_TRAIN_TIMESTEPS, SHIFT)
-    return [{"tau": float(t), "index": tau_index(t, obj.num_train_timesteps),
-             "sigma": float(obj.sigmas[tau_index(t, obj.num_train_timesteps)]),
-             "timestep": float(obj.timesteps[tau_index(t, obj.num_train_timesteps)])} for t in taus]
+    points = []
+    for t in taus:
+        index = tau_index(t, obj.num_train_timesteps)
+        used, timestep = effective_step(index, obj)
+        point = {"tau": float(t), "index": index, "sigma": float(obj.sigmas[used]), "timestep": timestep}
+        if obj.dtype == "bfloat16":
+            point["schedule_index"] = used
+        points.append(point)
+    return points
+
+
+def make_objective(conditioning: Conditioning = Conditioning(), patch_size=(1, 2, 2)) -> FlowMatchingObjective:
+    """The training objective that noises the latent under ``conditioning`` (slot-0 timestep, precision)."""
+    return FlowMatchingObjective(NUM_TRAIN_TIMESTEPS, SHIFT, patch_size,
+                                 clean_slot_timestep=conditioning.clean_slot_timestep,
+                                 dtype=conditioning.objective_dtype)
 
 
 def clip_noise(clip_id: str, shape, seed: int = 0) -> torch.Tensor:
@@ -62,6 +93,16 @@ def clip_noise(clip_id: str, shape, seed: int = 0) -> torch.Tensor:
     digest = hashlib.sha256(f"{int(seed)}/{clip_id}".encode()).digest()
     gen = torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
     return torch.randn(tuple(shape), generator=gen, dtype=torch.float32)
+
+
+def shared_noise(shape, seed: int = 0) -> torch.Tensor:
+    """Gaussian noise (float32, CPU) of ``shape`` from a generator seeded ``seed``: the same for every clip."""
+    return torch.randn(tuple(shape), generator=torch.Generator().manual_seed(int(seed)), dtype=torch.float32)
+
+
+def noise_for(clip_id: str, shape, seed: int = 0, conditioning: Conditioning = Conditioning()) -> torch.Tensor:
+    """The noise a clip is noised with under ``conditioning``: per clip, or shared by every clip."""
+    return shared_noise(shape, seed) if conditioning.noise == "shared" else clip_noise(clip_id, shape, seed)
 
 
 def _is_rms_norm(module) -> bool:
@@ -118,11 +159,12 @@ def load_backbone(backbone: str, model: str, model_path: str | None, device, dty
 
 
 def noised_batch(latent: torch.Tensor, clip_id: str, tau: float, objective: FlowMatchingObjective | None = None,
-                 seed: int = 0):
-    """latent (C, F, h, w) -> the objective's NoisedBatch (B = 1) at schedule fraction ``tau``."""
-    obj = objective or FlowMatchingObjective(NUM_TRAIN_TIMESTEPS, SHIFT)
+                 seed: int = 0, conditioning: Conditioning = Conditioning()):
+    """latent (C, F, h, w) -> the objective's NoisedBatch (B = 1) at schedule fraction ``tau``, with the noise
+    ``conditioning`` names (the objective, when not given, is ``make_objective(conditioning)``)."""
+    obj = objective or make_objective(conditioning)
     z = latent.float().unsqueeze(0)
-    return obj.prepare(z, clip_noise(clip_id, z.shape, seed), tau_index(tau, obj.num_train_timesteps))
+    return obj.prepare(z, noise_for(clip_id, z.shape, seed, conditioning), tau_index(tau, obj.num_train_timesteps))
 
 
 @contextmanager

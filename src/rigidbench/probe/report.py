@@ -262,10 +262,11 @@ def write_report(probe_dirs, intervene_dir, out) -> Path:
         figs = intervention_figure(_read_csv(d / "effects_by_cell.csv"), out)
         bases = _read_csv(d / "bases.csv")
         ranks = [int(b["rank"]) for b in bases]
+        procedures = ", ".join(sorted({b.get("procedure") or "stable" for b in bases}))
         sections += ["<h2>Position-aligned interventions</h2>",
                      f"<p>INLP position basis rank {min(ranks)}-{max(ranks)} (mean {np.mean(ranks):.1f}) over "
-                     f"{len(bases)} cells. Loss change: mean over clips of each clip's mean over blocks and taus, "
-                     "bootstrap 95% CI over clips.</p>", _table(summary)]
+                     f"{len(bases)} cells, INLP procedure {procedures}. Loss change: mean over clips of each clip's "
+                     "mean over blocks and taus, bootstrap 95% CI over clips.</p>", _table(summary)]
         sections += [f'<figure><img src="{f}" style="max-width:100%"><figcaption>{f}</figcaption></figure>'
                      for f in figs]
     page = out / "index.html"

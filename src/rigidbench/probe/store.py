@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..jsonio import write_json
+from .recipe import Conditioning
 
 MANIFEST = "manifest.json"
 STORE_VERSION = 3  # 3: one file pair per clip (driver); 2: tau as the release maps it, chunks of clips
@@ -128,9 +129,23 @@ class ActivationStore:
         """What the store's rows and activations are: its settings and every clip's key (a chunked store: its
         chunks); not the splits, nor where the cache and bundles were."""
         settings = {k: v for k, v in self.manifest.items()
-                    if k not in ("clips", "chunks", "empty", "failed", "created", "updated", "splits", "cache", "data")}
+                    if k not in ("clips", "chunks", "empty", "failed", "created", "updated", "splits", "cache", "data",
+                                 "recipe", "conditioning")}
+        extra = self.conditioning.key_part()  # ours adds nothing: the identity of stores made before the option
+        if extra is not None:
+            settings["conditioning"] = extra
         units = self.manifest.get("clips") if self.version == 3 else self.manifest.get("chunks")
         return {"settings": settings, "units": units}
+
+    @property
+    def conditioning(self) -> Conditioning:
+        """How the store's clips were conditioned (a store made before the option: ours)."""
+        return Conditioning.from_record(self.manifest.get("conditioning"))
+
+    @property
+    def recipe(self) -> str:
+        """The recipe the store was extracted with: "ours", "release", or "<name>+changes"."""
+        return str(self.manifest.get("recipe", "ours"))
 
     def clip_key(self, clip: str) -> str | None:
         """The extraction key of ``clip`` (version 3), or None."""

@@ -42,6 +42,8 @@ th[scope=row], th:first-child, th.label { text-align: left; }
 thead tr:last-child th { border-bottom: 1.5px solid #333; } thead tr:first-child th { border-top: 1.5px solid #333; }
 tbody tr:last-child td, tbody tr:last-child th { border-bottom: 1.5px solid #333; }
 tr.break td, tr.break th { border-top: 1px solid #999; }
+tr.block th { text-align: left; font-weight: 600; font-style: italic; background: #fff8e6; color: #6b4e00; }
+.paper-note { color: #6b4e00; font-size: 13px; max-width: 1100px; }
 th.group { text-align: center; border-bottom: 1px solid #999; font-weight: 600; }
 tbody tr:nth-child(even) { background: #f6f7f9; }
 .ci { color: #666; font-size: 11px; } table.results td .ci { display: block; }
@@ -95,8 +97,8 @@ def _link(path: Path, root: Path, label: str) -> str:
 def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> str:
     """The runs with their provenance; 'Not official because' lists only what a run adds to the shared reason."""
     with_reasons = any(extra_reasons.get(run.name) for run in data.table.runs)
-    head = ["Model", "Run directory", "Perception", "Official", "Examples", "Coverage of the span", "Failed",
-            "Skipped measurements"]
+    head = ["Model", "Run directory", "Perception", "Protocol", "Official", "Examples", "Coverage of the span",
+            "Failed", "Skipped measurements"]
     head += ["Not official because (beyond the reason above)"] if with_reasons else []
     rows = ['<table class="runs"><thead><tr>' + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr></thead><tbody>"]
     for run in data.table.runs:
@@ -106,7 +108,8 @@ def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> s
         backend = run.perception + (f" (v{run.perception_version})" if run.perception_version else "")
         total = f"{run.n_examples}" + (f" of {run.n_reference}" if run.n_reference is not None else "")
         cells = [f'<th scope="row">{_e(run.name)}</th>', f'<td class="path">{_e(run.path)}</td>',
-                 f"<td>{_e(backend)}</td>", f"<td>{'yes' if run.official else 'no'}</td>", f"<td>{total}</td>",
+                 f"<td>{_e(backend)}</td>", f"<td>{_e(run.protocol or 'unrecorded')}</td>",
+                 f"<td>{'yes' if run.official else 'no'}</td>", f"<td>{total}</td>",
                  f"<td>{_e(run.coverage_text)}</td>", f"<td>{failed}</td>", f"<td>{skipped}</td>"]
         if with_reasons:
             cells.append(f"<td>{_e('; '.join(extra_reasons.get(run.name, ()))) or '—'}</td>")
@@ -123,6 +126,8 @@ def header(data: ReportData, notes, probe: tuple[str, str] | None = None) -> lis
     meta = [f"{len(t.models)} run{'s' if len(t.models) != 1 else ''}",
             f"{len(t.example_ids)} shared example{'s' if len(t.example_ids) != 1 else ''}",
             f"{' / '.join(backends)} perception",
+            f"protocol {' / '.join(sorted({run.protocol or 'unrecorded' for run in t.runs}))}",
+            f"reference set {' / '.join(sorted({run.dataset_text for run in t.runs}))}",
             f"95% percentile bootstrap intervals ({data.resamples:,} resamples over examples, seed {data.seed})"]
     if len(t.models) > 1:
         meta.append(f"paired comparisons with <b>{_e(t.models[data.baseline])}</b>")
@@ -195,10 +200,11 @@ def examples_caption(strips: Filmstrips) -> str:
 
 def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[str, dict[str, Path]],
                 figures: list[FigureFile], root: Path, strips: Filmstrips | None = None, checkpoints=None,
-                probe: tuple[str, str] | None = None) -> str:
+                probe: tuple[str, str] | None = None, paper_note: str = "") -> str:
     """The whole report page; every path it references lies under `root` (but a linked probe report).
 
-    checkpoints: a CheckpointSweep (report/checkpoints.py) or None; probe: (href, note) of a probe report."""
+    checkpoints: a CheckpointSweep (report/checkpoints.py) or None; probe: (href, note) of a probe report;
+    paper_note: the line saying why the paper's numbers are not beside the runs ("" when they are, or none)."""
     tb = {table.key: table for table in tables}
     fig = {f.key: f for f in figures}
     strips = strips or Filmstrips(())
@@ -215,7 +221,8 @@ def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[
             return []
         return [f'<details class="more"><summary>{_e(tb[key].title)}</summary>'] + table(key, "") + ["</details>"]
 
-    body["models"] = table("model_metrics", "") + figure("ssim_vs_ate3d")
+    body["models"] = ([f'<p class="paper-note">{_e(paper_note)}</p>'] if paper_note else []) \
+        + table("model_metrics", "") + figure("ssim_vs_ate3d")
     if strips.examples or strips.note:
         captions = ([examples_caption(strips)] if strips.examples else []) + ([strips.note] if strips.note else [])
         body["examples"] = [f'<p class="caption">{_e(c)}</p>' for c in captions]

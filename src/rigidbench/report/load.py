@@ -10,7 +10,6 @@ a non-finite or skipped measurement.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass, field, replace
@@ -20,7 +19,10 @@ import numpy as np
 
 from rigidbench.errors import ReportError
 from rigidbench.folders import RunFolder
+from rigidbench.groundtruth.bundle import unverified_reason
+from rigidbench.jsonio import DamagedJSON, load_json
 from rigidbench.metrics import METRICS
+from rigidbench.readouts.records import record_problem, rewrite_hint
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +46,21 @@ class RunInfo:
     predictions: str = ""  # the predictions directory and reference split as run.json recorded them
     data: str = ""
     coverage: dict = field(default_factory=dict)  # results.json "coverage": fractions of the reference span
+    unreadable: dict = field(default_factory=dict)  # example id -> why its record is left out (damaged)
+    protocol: str = ""  # results.json "protocol" name (evaluation.protocol), "" when the run predates it
+    dataset: dict = field(default_factory=dict)  # results.json "dataset": the reference set (bundle.set_identity)
+
+    @property
+    def dataset_text(self) -> str:
+        """The reference set in a few words: its name and version and, for a published set, whether its MD5
+        was checked."""
+        d = self.dataset
+        if not d or "sets" in d:
+            return str(d.get("dataset", "mixed")) if d else "unrecorded"
+        name = " ".join(str(d[k]) for k in ("dataset", "version") if d.get(k))
+        if d.get("dataset") == "rendered":
+            return name
+        return f"{name} (MD5 {'verified' if unverified_reason(d) is None else 'not verified'})"
 
     @property
     def coverage_text(self) -> str:
@@ -78,12 +95,17 @@ class ScoreTable:
         return self.metrics.index(metric)
 
 
+def _rerun(run_dir: Path) -> str:
+    return f"rerun `rigidbench evaluate` with --out {run_dir} (it keeps every scored example)"
+
+
 def _read_json(path: Path, run_dir: Path) -> dict:
-    """Parse one JSON file of a run; a malformed file raises ReportError naming it."""
+    """One run-level JSON file of a run (results.json, run.json) as a JSON object; a damaged one (truncated,
+    empty, not UTF-8, a directory, another document) raises ReportError naming it and what to do."""
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ReportError(f"{path}: not valid JSON ({exc}); rerun `rigidbench evaluate` for {run_dir}") from None
+        return load_json(path, expect=dict)
+    except DamagedJSON as exc:
+        raise ReportError(f"{exc}; {rewrite_hint(run_dir, path)}") from None
 
 
 def _score(value) -> float:
@@ -108,28 +130,61 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
                           f"`rigidbench evaluate predictions/MODEL --out {run_dir}` first (it resumes)")
     results = _read_json(results_path, run_dir)
     run = _read_json(folder.run, run_dir) if folder.run.exists() else {}
-    failed = dict(results.get("failed") or {})
-    records = {}
+    failed = results.get("failed") or {}
+    if not isinstance(failed, dict):
+        raise ReportError(f"{results_path}: its 'failed' is not a JSON object; {rewrite_hint(run_dir, results_path)}")
+    records, unreadable = {}, {}
     for path in folder.records():  # <id>.json, not <id>.x.json
-        record = _read_json(path, run_dir)
+        if path.stem in failed:
+            continue  # a stale record from an earlier run of an example that failed this time
+        try:
+            record = load_json(path, expect=dict)
+            problem = record_problem(record)
+        except FileNotFoundError:
+            continue  # removed since the listing
+        except DamagedJSON as exc:
+            record, problem = None, str(exc).removeprefix(f"{path}: ")
+        if problem is not None:  # left out, counted in the report's header (load_runs)
+            log.warning("%s: %s; the example is left out of the report; %s to score it again", path, problem,
+                        _rerun(run_dir))
+            unreadable[path.stem] = f"{path.relative_to(run_dir)}: {problem}"
+            continue
         sample_id = str(record.get("id", path.stem))
         if sample_id in failed:
-            continue  # a stale record from an earlier run of an example that failed this time
-        for key in ("task", "partition", "metrics"):
-            if key not in record:
-                raise ReportError(f"{path}: example record has no '{key}'; rerun `rigidbench evaluate` for {run_dir}")
+            continue
         records[sample_id] = record
+    coverage = results.get("coverage")
+    scored = coverage.get("per_example") if isinstance(coverage, dict) else None
+    for sample_id in sorted(scored) if isinstance(scored, dict) else ():  # scored (results.json), record gone
+        if sample_id not in records and sample_id not in unreadable and sample_id not in failed:
+            unreadable[sample_id] = f"{folder.record(sample_id).relative_to(run_dir)}: missing"
     if not records:
-        raise ReportError(f"{run_dir}: no scored examples in {folder.examples_dir}; every example failed or the "
-                          "run was interrupted before scoring one. Rerun `rigidbench evaluate` for it")
+        damaged = f" ({len(unreadable)} example record(s) damaged: {'; '.join(unreadable.values())})" \
+            if unreadable else ""
+        raise ReportError(f"{run_dir}: no scored examples in {folder.examples_dir}{damaged}; every example failed "
+                          "or the run was interrupted before scoring one. Rerun `rigidbench evaluate` for it")
+    try:
+        info = _run_info(run_dir, results, run, failed, records, unreadable)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise ReportError(f"{results_path} or {folder.run}: a field has another type than `rigidbench evaluate` "
+                          f"writes ({type(exc).__name__}: {exc}); {rewrite_hint(run_dir, results_path)}") from None
+    return info, records
+
+
+def _run_info(run_dir: Path, results: dict, run: dict, failed: dict, records: dict, unreadable: dict) -> RunInfo:
+    """The RunInfo of a run from its results.json and run.json (TypeError, ValueError or AttributeError when a
+    field has another type than evaluate writes)."""
     perception = run.get("perception") or {}
-    info = RunInfo(
+    dataset = dict(results.get("dataset") or {})
+    unverified = unverified_reason(dataset)  # a results.json written before issue 32 may still say official
+    reasons = tuple(results.get("why_not_official") or ())
+    return RunInfo(
         name=str(run.get("model") or results.get("model") or run_dir.name),
         path=run_dir,
         perception=str(perception.get("backend") or results.get("perception") or "unknown"),
         perception_version=str(perception.get("version", "")),
-        official=bool(results.get("official", False)),
-        why_not_official=tuple(results.get("why_not_official") or ()),
+        official=bool(results.get("official", False)) and unverified is None,
+        why_not_official=reasons + ((unverified,) if unverified and unverified not in reasons else ()),
         skipped_metrics=dict(results.get("skipped_metrics") or {}),
         failed=failed,
         n_examples=len(records),
@@ -138,8 +193,10 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
         predictions=str(run.get("predictions") or ""),
         data=str(run.get("data") or ""),
         coverage=dict(results.get("coverage") or {}),
+        unreadable=unreadable,
+        protocol=str((results.get("protocol") or {}).get("name") or ""),
+        dataset=dataset,
     )
-    return info, records
 
 
 def _unique_names(infos: list[RunInfo]) -> list[RunInfo]:
@@ -171,6 +228,15 @@ def load_runs(run_dirs) -> ScoreTable:
         raise ReportError("the runs share no example ids, so they cannot be compared: "
                           + "; ".join(f"{i.path}: {len(s)} examples" for i, s in zip(infos, id_sets)))
     notes = []
+    for info in infos:
+        if info.unreadable:
+            notes.append(f"{len(info.unreadable)} example record(s) of {info.name} could not be read and are left "
+                         f"out ({'; '.join(info.unreadable.values())}); {_rerun(info.path)} to score them again.")
+    protocols = sorted({info.protocol or "unrecorded" for info in infos})
+    if len(protocols) > 1:
+        notes.append("The runs were scored under different evaluation protocols ("
+                     + "; ".join(f"{info.name}: {info.protocol or 'unrecorded'}" for info in infos)
+                     + "); their differences mix the protocols' rules with the models' (docs/metrics.md).")
     extra = {info.name: len(ids) - len(shared) for info, ids in zip(infos, id_sets) if len(ids) > len(shared)}
     if extra:
         notes.append(f"The runs cover different examples; every table and figure uses the {len(shared)} examples "

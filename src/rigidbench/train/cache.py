@@ -120,7 +120,7 @@ def _atomic_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: 
 
     path.parent.mkdir(parents=True, exist_ok=True)
     # unique: several processes may write one prompt's file at once (the last rename wins; same content)
-    with atomic_file(path, mode=0o644, unique=True) as tmp:  # safetensors creates the file private to its owner
+    with atomic_file(path, unique=True) as tmp:  # (it gets the umask's mode, whatever safetensors made it)
         save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp), metadata=metadata)
 
 

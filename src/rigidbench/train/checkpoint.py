@@ -18,7 +18,8 @@
         checkpoint.json              step, mode, base model, examples seen, config digest (written last)
     RUN/training_state/step-500/     the resumable state of the same update, removed from all but the
                                      newest ``keep_training_states`` (1 in the packaged configurations:
-                                     a full fine-tuning state is ~60 GB; 0 keeps every one):
+                                     a full fine-tuning state is ~30 GB with bf16 masters, ~60 GB
+                                     with float32; 0 keeps every one):
         dcp/                         torch.distributed.checkpoint: the trainable weights (``master_weights``) and
                                      the AdamW state, one file per process (reshardable on load)
         scheduler.pt                 the learning-rate scheduler's state

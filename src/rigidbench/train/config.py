@@ -39,7 +39,7 @@ TEXT_PADDINGS = ("encoder", "zeros")              # text.padding: UMT5's outputs
 CLEAN_SLOT_TIMESTEPS = ("noisy", "zero")          # objective.clean_slot_timestep: t on every token | 0 on slot 0
 DRAWS = ("shared", "per_rank")                    # objective.draws: one timestep and noise for all ranks | per rank
 OBJECTIVE_DTYPES = ("bfloat16", "float32")        # objective.dtype: timestep, noised latent and target precision
-MASTER_WEIGHTS = ("float32", "bfloat16")          # master_weights: dtype of the trained weights and AdamW state
+MASTER_WEIGHTS = ("bfloat16", "float32")          # master_weights: dtype of the trained weights, gradients, AdamW state
 
 
 @dataclass(frozen=True)
@@ -106,7 +106,7 @@ class TrainConfig:
     max_steps: int
     checkpoint_every: int
     keep_training_states: int       # training_state/ kept in the newest N checkpoints (0: all); exports stay
-    master_weights: str             # float32 | bfloat16 (the release: weights, gradients and AdamW state in bf16)
+    master_weights: str             # bfloat16 (the release; packaged lora and full) | float32 (float32 masters)
     gradient_checkpointing: bool
     precision: str                  # bf16 (GPU; the CPU runs fp32 and records it) | fp32
     seed: int

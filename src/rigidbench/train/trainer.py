@@ -11,11 +11,13 @@ is therefore the number of examples seen, and a resumed run draws exactly what a
 draws.
 
 LoRA (``mode: lora``): peft adapters of rank ``lora.rank`` on ``lora.target_modules`` of every
-block; the base weights are frozen (bfloat16 on a GPU) and the adapters train in float32.
-Full (``mode: full``): every transformer weight except ``frozen_modules`` trains, float32 master
-weights; FSDP2 casts them to bfloat16 for compute on a GPU. ``master_weights: bfloat16`` is the
-release's: the whole transformer (adapters too) is stored and updated in bfloat16, and FSDP2 reduces
-gradients in bfloat16. Both run the forward pass under bf16 autocast on a GPU and in float32 on the
+block; the base weights are frozen. Full (``mode: full``): every transformer weight except
+``frozen_modules`` trains. ``master_weights: bfloat16`` (the packaged ``lora`` and ``full``, which
+reproduce the published runs) is the release's: the whole transformer (adapters too), its gradients
+and AdamW's moments are stored and updated in bfloat16, and FSDP2 reduces gradients in bfloat16; at
+the full run's lr 2e-5 an update smaller than half a weight's bfloat16 spacing leaves it unchanged.
+``master_weights: float32``: float32 adapters / float32 full weights (the frozen LoRA base bfloat16 on
+a GPU), which FSDP2 casts to bfloat16 for compute on a GPU. Both run the forward pass under bf16 autocast on a GPU and in float32 on the
 CPU (``run.json`` records which), compute the loss in float32, clip the gradient norm, and step a
 (fused where available) AdamW and the warm-up + cosine learning rate (``schedules.lr_factor``; update
 k runs at schedule index k - 1 + ``schedule.first_step``). The text context is the cache's
