@@ -20,7 +20,7 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 # Largest resample chunk, in index-matrix elements (B_chunk * n); bounds peak memory to ~50 MB.
-_MAX_CHUNK_ELEMENTS = 1 << 21
+MAX_CHUNK_ELEMENTS = 1 << 21
 
 
 def check_options(n_resamples: int, confidence: float) -> None:
@@ -41,7 +41,7 @@ def _resample_counts(n: int, n_resamples: int, seed: int, chunk_rows: int):
         yield np.bincount(flat.ravel(), minlength=b * n).reshape(b, n).astype(np.float64)
 
 
-def _resampled_means(
+def resampled_row_means(
     deviations: np.ndarray, n_resamples: int, seed: int, chunk_elements: int
 ) -> np.ndarray:
     """deviations: (R, n) float64, finite. Returns (n_resamples, R) float64 resampled means."""
@@ -81,14 +81,14 @@ def _bootstrap_rows(
         if n < 2:
             logger.debug("%d row(s) have a single finite example; interval left NaN", len(rows))
             continue
-        means = _resampled_means(deviations, n_resamples, seed, chunk_elements)
+        means = resampled_row_means(deviations, n_resamples, seed, chunk_elements)
         q = np.quantile(means, [alpha / 2.0, 1.0 - alpha / 2.0], axis=0)
         lo[rows] = center[:, 0] + q[0]
         hi[rows] = center[:, 0] + q[1]
     return mean, lo, hi
 
 
-def _unpack(mean: np.ndarray, lo: np.ndarray, hi: np.ndarray, shape: tuple[int, ...]):
+def unpack_rows(mean: np.ndarray, lo: np.ndarray, hi: np.ndarray, shape: tuple[int, ...]):
     """Reshape flat row results to `shape`; 0-d results become Python floats."""
     if shape == ():
         return float(mean[0]), float(lo[0]), float(hi[0])
@@ -101,7 +101,7 @@ def bootstrap_ci(
     confidence: float = 0.95,
     seed: int = 0,
     *,
-    chunk_elements: int = _MAX_CHUNK_ELEMENTS,
+    chunk_elements: int = MAX_CHUNK_ELEMENTS,
 ):
     """values: (..., N) float per-example scores. Returns (mean, lo, hi): floats for (N,), else (...) float64 arrays."""
     check_options(n_resamples, confidence)
@@ -111,7 +111,7 @@ def bootstrap_ci(
     shape = arr.shape[:-1]
     rows = arr.reshape(int(np.prod(shape, dtype=np.int64)), arr.shape[-1])
     mean, lo, hi = _bootstrap_rows(rows, int(n_resamples), confidence, seed, int(chunk_elements))
-    return _unpack(mean, lo, hi, shape)
+    return unpack_rows(mean, lo, hi, shape)
 
 
 def paired_difference(

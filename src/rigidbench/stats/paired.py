@@ -52,7 +52,7 @@ def probability_of_improvement(
     return bootstrap_ci(improvement_indicators(a_arr, b, higher_is_better), n_resamples, confidence, seed)
 
 
-def _pairwise(
+def pairwise_matrix(
     pair_stats: np.ndarray,
     n_matched_pairs: np.ndarray,
     n_finite: np.ndarray,
@@ -103,7 +103,7 @@ def paired_difference_matrix(
     # Non-finite in either model makes the difference non-finite, so the pair drops that example.
     with np.errstate(invalid="ignore"):
         diffs = arr[iu] - arr[ju]
-    return _pairwise(
+    return pairwise_matrix(
         diffs, np.isfinite(diffs).sum(axis=1), np.isfinite(arr).sum(axis=1), 0.0, n_resamples, confidence, seed
     )
 
@@ -115,7 +115,7 @@ def probability_of_improvement_matrix(
     arr = _check_models(values)
     iu, ju = np.triu_indices(arr.shape[0], k=1)
     w = improvement_indicators(arr[iu], arr[ju], higher_is_better)
-    return _pairwise(
+    return pairwise_matrix(
         w, np.isfinite(w).sum(axis=1), np.isfinite(arr).sum(axis=1), 0.5, n_resamples, confidence, seed
     )
 
