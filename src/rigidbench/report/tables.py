@@ -7,7 +7,9 @@ and probabilities of improvement against a baseline, and the model x model proba
 improvement matrix for ATE-3D and SSIM. Numbers print to about three significant figures at the
 column's typical magnitude. A mean taken over fewer than all examples carries its finite count
 ("0.123 (n=97)"). CSV files hold the unrounded, unscaled numbers in long form (one row per model
-and metric) and round-trip exactly.
+and metric) and round-trip exactly. When the runs are comparable with the paper (report/paper.py), the
+model, task and partition tables and their CSV files also carry the paper's rows, in a block of their own
+marked "reported in the paper, not re-scored here", as the paper prints them and never ranked.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 
 from rigidbench.metrics import GROUPS, METRICS
 from rigidbench.report.analysis import ReportData, best_first_order, partition_label, rank_marks, task_label
+from rigidbench.report.paper import PaperNumbers
 
 # Display-only scale factors (the paper prints BGDrift x 10^3); CSV files stay unscaled.
 # The paper's two column groups of the model table: six object measurements, four image measurements.
@@ -70,6 +73,7 @@ class Table:
     groups: tuple[tuple[str, int], ...] = ()
     row_breaks: tuple[int, ...] = field(default=())
     vertical_header: bool = False  # HTML: column headings after the label columns run bottom to top
+    blocks: tuple[tuple[int, str], ...] = ()  # (row index, heading): a full-width heading before that row
 
 
 # ------------------------------------------------------------------------------- number formats
@@ -162,8 +166,45 @@ def _unranked_note(data: ReportData) -> str:
 MARKS_NOTE = "Bold: best, underlined: second best, among unique values as printed (ties take no mark)."
 
 
-def model_table(data: ReportData) -> Table:
-    """Model x ten metrics: mean [95% CI], best / second-best per metric marked."""
+def reported_rows(paper: PaperNumbers | None, by: str, columns: list[tuple[str, str | None]],
+                  n_label_columns: int = 1) -> tuple[list[tuple[Cell, ...]], str, str]:
+    """The paper's rows for a report table whose value columns are `columns` ((metric, task or partition id or
+    None) each), from its tables by `by`: (rows, block heading, caption sentence); no rows when `paper` is None
+    or has nothing for these columns. A row repeated by a later table (base Wan in the fine-tuning tables)
+    is shown once; a column the paper does not report reads "—"."""
+    rows: list[tuple[Cell, ...]] = []
+    seen, used = set(), []
+    for source in (paper.tables_by(by) if paper is not None else ()):
+        found = False
+        for row in source.rows:
+            cells = [source.cell(row, metric, group) for metric, group in columns]
+            if all(c is None for c in cells):
+                continue
+            label = f"{row.name} (paper)"
+            texts = tuple(c.text if c is not None else "—" for c in cells)
+            if (label, texts) in seen:
+                continue
+            seen.add((label, texts))
+            found = True
+            rows.append((Cell(label),) + (Cell(""),) * (n_label_columns - 1) + tuple(
+                Cell("—") if c is None else Cell(c.text, note=f"n={c.n_finite}" if c.n_finite < c.n_examples
+                                                 else "") for c in cells))
+        if found:
+            used.append(source)
+    if not rows:
+        return [], "", ""
+    names = "; ".join(f"{t.title} ({t.label}, {t.cell_examples} examples per cell)" for t in used)
+    heading = f"{paper.marker[0].upper()}{paper.marker[1:]}: {names}"
+    missing = any(c.text == "—" for row in rows for c in row[n_label_columns:])
+    caption = (f" Rows marked (paper) are {paper.marker}: the paper's means as it prints them (its precision and "
+               f"scale), with no interval and no rank mark. Non-finite values in the paper's means: "
+               f"{paper.non_finite[0].lower()}{paper.non_finite[1:]}" + (" —: not in the paper." if missing else ""))
+    return rows, heading, caption
+
+
+def model_table(data: ReportData, reported: PaperNumbers | None = None) -> Table:
+    """Model x ten metrics: mean [95% CI], best / second-best per metric marked; `reported`: the paper's
+    numbers, added below the runs (only for runs comparable with them, report/paper.py)."""
     t = data.table
     n = len(t.example_ids)
     columns = []
@@ -175,12 +216,15 @@ def model_table(data: ReportData) -> Table:
                                    int(data.overall.n_finite[m, k]), n, decimals, marks[m], bool(t.skipped[m, k]),
                                    scale=scale) for m in range(len(t.models))])
     rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
+    paper_rows, heading, paper_note = reported_rows(reported, "model", [(m, None) for m in t.metrics])
     caption = (f"Means over the {n} evaluation examples, 95% percentile bootstrap interval below "
                f"({data.resamples:,} resamples over examples); non-finite measurements are left out and n= gives "
                f"the finite count where there were some. Arrows give the better direction. {MARKS_NOTE}"
-               + scale_note(t.metrics) + _unranked_note(data))
+               + scale_note(t.metrics) + _unranked_note(data) + paper_note)
     return Table("model_metrics", "Model comparison", caption, ("Model",) + tuple(metric_label(m) for m in t.metrics),
-                 ("",) + tuple(metric_arrow(m) for m in t.metrics), rows, groups=metric_groups(t.metrics))
+                 ("",) + tuple(metric_arrow(m) for m in t.metrics), rows + tuple(paper_rows),
+                 groups=metric_groups(t.metrics), row_breaks=(len(rows),) if paper_rows else (),
+                 blocks=((len(rows), heading),) if paper_rows else ())
 
 
 def grouping(data: ReportData, by: str):
@@ -201,9 +245,11 @@ GROUP_WORDS = {"task": ("task", "by_task.csv"),
 PARTITION_NOTE = ("ID: training scenes and objects; Scene, Object, Both: held-out scenes, objects, or both.")
 
 
-def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None = None) -> Table:
+def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None = None,
+                    reported: PaperNumbers | None = None) -> Table:
     """Model x (metric, group) for a few metrics (default the headline ATE-3D and SSIM), as the paper's task
-    and partition tables: mean [95% CI] per cell, best / second-best within each group."""
+    and partition tables: mean [95% CI] per cell, best / second-best within each group; `reported`: the
+    paper's numbers by that grouping, added below the runs."""
     t = data.table
     labels, groups, iv, label = grouping(data, by)
     metrics = metrics or headline_metrics(t.metrics)
@@ -220,14 +266,17 @@ def breakdown_table(data: ReportData, by: str, metrics: tuple[str, ...] | None =
         header += [label(g) for g in groups]
         spans.append((f"{metric_label(metric)}{ARROW_TEXT[metric_arrow(metric)]}", len(groups)))
     rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
+    paper_rows, heading, paper_note = reported_rows(reported, by, [(m, g) for m in metrics for g in groups])
     word, csv_name = GROUP_WORDS[by]
     names = " and ".join(METRICS[m].display_name for m in metrics)
     sizes = ", ".join(f"{label(g)} {c}" for g, c in zip(groups, counts))
     caption = (f"{names} by {word}: the mean over that {word}'s examples ({sizes}) with its 95% bootstrap interval. "
                + (PARTITION_NOTE + " " if by == "partition" else "") + MARKS_NOTE
-               + f" Every measurement by {word} is in the table below and in {csv_name}." + scale_note(metrics))
-    return Table(f"by_{by}", f"By {word}", caption, ("Model",) + tuple(header), ("",) * (1 + len(header)), rows,
-                 groups=tuple(spans))
+               + f" Every measurement by {word} is in the table below and in {csv_name}." + scale_note(metrics)
+               + paper_note)
+    return Table(f"by_{by}", f"By {word}", caption, ("Model",) + tuple(header), ("",) * (1 + len(header)),
+                 rows + tuple(paper_rows), groups=tuple(spans), row_breaks=(len(rows),) if paper_rows else (),
+                 blocks=((len(rows), heading),) if paper_rows else ())
 
 
 def all_metrics_table(data: ReportData, by: str) -> Table:
@@ -336,10 +385,12 @@ def poi_table(data: ReportData, metric: str) -> Table | None:
                  vertical_header=True)
 
 
-def build_tables(data: ReportData) -> list[Table]:
-    """Every table of the report, in display order."""
-    tables = [model_table(data), breakdown_table(data, "task"), all_metrics_table(data, "task"),
-              breakdown_table(data, "partition"), all_metrics_table(data, "partition")]
+def build_tables(data: ReportData, reported: PaperNumbers | None = None) -> list[Table]:
+    """Every table of the report, in display order; `reported`: the paper's numbers to show beside the runs
+    (None: the runs are not comparable with them)."""
+    tables = [model_table(data, reported), breakdown_table(data, "task", reported=reported),
+              all_metrics_table(data, "task"), breakdown_table(data, "partition", reported=reported),
+              all_metrics_table(data, "partition")]
     paired = paired_table(data)
     if paired is not None:
         tables.append(paired)
@@ -373,7 +424,11 @@ def to_markdown(table: Table) -> str:
     header = [_md_escape(h) + ARROW_TEXT[a] for h, a in zip(table.header, table.arrows)]
     align = [":--"] * table.n_label_columns + ["--:"] * (len(header) - table.n_label_columns)
     lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |"]
-    lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in table.rows]
+    blocks = dict(table.blocks)
+    for i, row in enumerate(table.rows):
+        if i in blocks:
+            lines.append(f"| *{_md_escape(blocks[i])}* |" + " |" * (len(header) - 1))
+        lines.append("| " + " | ".join(_md_cell(c) for c in row) + " |")
     lines += ["", table.caption, ""]
     return "\n".join(lines)
 
@@ -420,9 +475,12 @@ def to_latex(table: Table) -> str:
     lines.append("    " + " & ".join(tex_escape(h) + _ARROW_TEX[a] for h, a in zip(table.header, table.arrows))
                  + r" \\")
     lines.append(r"    \midrule")
+    blocks = dict(table.blocks)
     for i, row in enumerate(table.rows):
         if i in table.row_breaks:
             lines.append(r"    \midrule")
+        if i in blocks:
+            lines.append(rf"    \multicolumn{{{n_cols}}}{{l}}{{\emph{{{tex_escape(blocks[i])}}}}} \\")
         lines.append("    " + " & ".join(_tex_cell(c) for c in row) + r" \\")
     lines += [r"    \bottomrule", r"  \end{tabular}%", r"  }",
               rf"  \caption{{\textbf{{{tex_escape(table.title)}.}} {tex_escape(table.caption)}}}",
@@ -471,8 +529,12 @@ def to_html(table: Table) -> str:
             heads.append(f'<th><span class="vh">{text}</span></th>' if table.vertical_header else f"<th>{text}</th>")
     lines.append("<tr>" + "".join(heads) + "</tr>")
     lines += ["</thead>", "<tbody>"]
+    blocks = dict(table.blocks)
     for i, row in enumerate(table.rows):
-        css = ' class="break"' if i in table.row_breaks else ""
+        if i in blocks:
+            lines.append(f'<tr class="block{" break" if i in table.row_breaks else ""}">'
+                         f'<th colspan="{len(table.header)}" scope="colgroup">{html.escape(blocks[i])}</th></tr>')
+        css = ' class="break"' if i in table.row_breaks and i not in blocks else ""
         label_cells = "".join(f'<th scope="row">{html.escape(c.text)}</th>' for c in row[:table.n_label_columns])
         lines.append(f"<tr{css}>" + label_cells + "".join(_html_cell(c) for c in row[table.n_label_columns:])
                      + "</tr>")
@@ -498,8 +560,31 @@ def write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
     return path
 
 
-def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
-    """Long-form CSV files of every statistic (unscaled, full precision). Returns the paths written."""
+#: the `source` column of model_metrics.csv, by_task.csv and by_partition.csv for a row of the runs
+SCORED_HERE = "scored here"
+
+
+def reported_csv_rows(paper: PaperNumbers | None, by: str) -> list[list]:
+    """The paper's numbers by `by` as rows of model_metrics.csv ("model") or by_<by>.csv: unscaled, without
+    intervals or marks, `source` = the paper's marker; none when `paper` is None."""
+    rows: list[list] = []
+    for source in (paper.tables_by(by) if paper is not None else ()):
+        for c in source.cells():
+            model = f"{c.row} (paper)"
+            if by == "model":
+                row = [model, c.metric, int(c.higher_is_better), csv_number(c.value), "", "", c.n_finite,
+                       c.n_examples, 0, "", paper.marker]
+            else:
+                row = [model, c.group, c.metric, csv_number(c.value), "", "", c.n_finite, c.n_examples, "",
+                       paper.marker]
+            if row not in rows:  # base Wan is in the task table and again in the fine-tuning one
+                rows.append(row)
+    return rows
+
+
+def write_csvs(data: ReportData, out_dir: Path, reported: PaperNumbers | None = None) -> list[Path]:
+    """Long-form CSV files of every statistic (unscaled, full precision); `reported`: the paper's numbers to add
+    to model_metrics.csv and the by-task and by-partition files. Returns the paths written."""
     t = data.table
     n = len(t.example_ids)
     hib = [METRICS[m].higher_is_better for m in t.metrics]
@@ -511,10 +596,11 @@ def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
         for m, model in enumerate(t.models):
             o = data.overall
             rows.append([model, metric, int(hib[k]), csv_number(o.mean[m, k]), csv_number(o.lo[m, k]),
-                         csv_number(o.hi[m, k]), int(o.n_finite[m, k]), n, int(t.skipped[m, k]), marks[m]])
+                         csv_number(o.hi[m, k]), int(o.n_finite[m, k]), n, int(t.skipped[m, k]), marks[m],
+                         SCORED_HERE])
     paths.append(write_csv(out_dir / "model_metrics.csv", ["model", "metric", "higher_is_better", "mean", "ci_low",
-                                                           "ci_high", "n_finite", "n_examples", "skipped", "mark"],
-                           rows))
+                                                           "ci_high", "n_finite", "n_examples", "skipped", "mark",
+                                                           "source"], rows + reported_csv_rows(reported, "model")))
     for key, labels, names, iv in (("by_task", t.tasks, data.tasks, data.by_task),
                                    ("by_partition", t.partitions, data.partitions, data.by_partition)):
         rows = []
@@ -525,10 +611,12 @@ def write_csvs(data: ReportData, out_dir: Path) -> list[Path]:
                 marks = marks_for(iv.mean[:, g, k], metric, data.ranked & ~t.skipped[:, k], decimals)
                 for m, model in enumerate(t.models):
                     rows.append([model, group, metric, csv_number(iv.mean[m, g, k]), csv_number(iv.lo[m, g, k]),
-                                 csv_number(iv.hi[m, g, k]), int(iv.n_finite[m, g, k]), n_group, marks[m]])
+                                 csv_number(iv.hi[m, g, k]), int(iv.n_finite[m, g, k]), n_group, marks[m],
+                                 SCORED_HERE])
         column = key.removeprefix("by_")
         paths.append(write_csv(out_dir / f"{key}.csv", ["model", column, "metric", "mean", "ci_low", "ci_high",
-                                                        "n_finite", "n_examples", "mark"], rows))
+                                                        "n_finite", "n_examples", "mark", "source"],
+                               rows + reported_csv_rows(reported, column)))
     if len(t.models) >= 2:
         d, p = data.paired_diff, data.paired_poi
         rows = [[t.models[m], t.models[data.baseline], metric, int(hib[k]), csv_number(d.mean[m, k]),
