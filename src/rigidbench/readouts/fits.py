@@ -203,6 +203,10 @@ class TimeWarp:
 #: the search range of the playback speed and its grid step
 SPEED_RANGE = (0.0, 3.0)
 SPEED_STEP = 0.02
+#: the grid caps each actor-frame's position error at this share of the reference's largest displacement,
+#: so a few misreconstructed frames cannot pay for a warp that pushes them out of the comparison (eval 00020
+#: under ``slow`` 1.0: kiwi frames read 0.7-1 m off gave s = 3.12 instead of 0.5 with an uncapped sum)
+WARP_OUTLIER_SHARE = 0.25
 #: refinement: a generated frame is matched to the reference instant nearest in position within this
 #: many frames of the current alignment, and counts when the reference moves faster there (m/s, summed
 #: over actors) and is past its first half frame (before it, every instant at rest looks the same)
@@ -224,12 +228,13 @@ def _sample_reference(ref: np.ndarray, t_ref: np.ndarray, tau: np.ndarray) -> np
 
 
 def _warp_sse(gen: np.ndarray, ref: np.ndarray, t: np.ndarray, t_ref: np.ndarray, speeds: np.ndarray,
-              offsets: np.ndarray, min_compared: int) -> tuple[np.ndarray, np.ndarray]:
-    """SSE and number compared on the (S, D) grid; SSE inf where fewer than min_compared actor-frames."""
+              offsets: np.ndarray, min_compared: int, outlier: float) -> tuple[np.ndarray, np.ndarray]:
+    """SSE (each actor-frame's squared error capped at outlier^2) and number compared on the (S, D) grid;
+    SSE inf where fewer than min_compared actor-frames."""
     tau = speeds[:, None, None] * t[None, None, :] + offsets[None, :, None]  # (S,D,T)
     pred = _sample_reference(ref, t_ref, tau)  # (N,S,D,T,3)
     diff = pred - gen[:, None, None, :, :]
-    sq = np.sum(diff * diff, axis=-1)  # (N,S,D,T)
+    sq = np.minimum(np.sum(diff * diff, axis=-1), outlier * outlier)  # (N,S,D,T); NaN stays NaN
     ok = np.isfinite(sq)
     n = ok.sum(axis=(0, 3))
     sse = np.where(ok, sq, 0.0).sum(axis=(0, 3))
@@ -240,8 +245,9 @@ def _warp_sse(gen: np.ndarray, ref: np.ndarray, t: np.ndarray, t_ref: np.ndarray
 def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: float = 0.01) -> TimeWarp:
     """gen (N,T,3) and ref (N,T_ref,3) displacements from frame 0 (m) of the same actors at frames k / fps
     (the reference may be longer: a fast clip shows its later frames); NaN = no position. Finds (s, d) minimising sum |gen(t_k) - ref(s t_k + d)|^2 over the actor-frames where both
-    exist (the reference is held at rest before t = 0 and undefined after its last frame), requiring at
-    least half of the finite generated actor-frames (and 3 frames) to be compared: a grid over s in
+    exist (the reference is held at rest before t = 0 and undefined after its last frame), each error capped
+    at WARP_OUTLIER_SHARE of the reference's largest displacement, requiring at least half of the finite
+    generated actor-frames (and 3 frames) to be compared: a grid over s in
     SPEED_RANGE (step SPEED_STEP) and d in [-(clip length), +(clip length) / 2] in half frames, then a refinement in time (see MATCH_WINDOW_FRAMES): each generated frame's best
     matching reference instant tau_k, and the least-squares line tau_k = s t_k + d through the informative
     frames, whose standard errors are reported (TimeWarp.grid["informative_frames"] counts them). NaN with a reason when the reference moves less than ``min_motion_m``."""
@@ -264,7 +270,8 @@ def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: fl
     speeds = np.arange(SPEED_RANGE[0], SPEED_RANGE[1] + 1e-9, SPEED_STEP)
     span = max(t[-1], t_ref[-1])
     offsets = np.arange(-span, 0.5 * span + 1e-9, 0.5 / fps)
-    sse, _ = _warp_sse(gen, ref, t, t_ref, speeds, offsets, min_compared)
+    outlier = WARP_OUTLIER_SHARE * float(np.nanmax(np.linalg.norm(ref, axis=-1)))
+    sse, _ = _warp_sse(gen, ref, t, t_ref, speeds, offsets, min_compared, outlier)
     if not np.isfinite(sse).any():
         return TimeWarp(float("nan"), float("nan"), reason="no speed and offset compare enough frames")
     i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)

@@ -9,6 +9,10 @@ False, None when no actor defines them.
 - ``duplicates``: the generated mask splits into at least two 8-connected components each of at
   least DUPLICATE_MIN_PX pixels and DUPLICATE_MIN_SHARE of the largest one, on at least MIN_FRAMES
   frames at which the reference mask of that actor does not split the same way (occlusion);
+  both compare generated frame k with the reference frame nearest the matched instant s t_k + d of the
+  speed readout (``reference_frames``), so a clip played slower or later is not flagged where it hides
+  an actor behind something later than the reference does (eval 00020's kiwi behind a ramp under
+  ``slow``); generated frames matched past the reference's last frame are not checked;
 - ``frozen``: the generated actor's world displacement from frame 0 stays below FROZEN_M at every frame
   while the reference actor moves more than FROZEN_M (undefined when the reference does not move);
 - ``through_support``: the generated actor's anchored height (readouts.physics) falls below
@@ -17,7 +21,8 @@ False, None when no actor defines them.
   tolerance is the object's whole thickness (2 half sides: its top below the support's): the height
   read from a clip is the median of the visible surface points, which wanders by up to a radius as the
   object turns or is occluded, so a smaller tolerance flagged the reference itself (demo examples
-  00010 and 00020, by 0.6-1.6 cm; an occluded kiwi by 14 cm on 2 frames);
+  00010 and 00020, by 0.6-1.6 cm; an occluded kiwi by 14 cm on 2 frames, frames the reconstruction now
+  leaves out: readouts.physics.off_own_mask);
 - ``through_actor``: two generated actors' anchored centres come closer than
   THROUGH_ACTOR_SHARE x (sum of their half smallest sides) on at least MIN_FRAMES frames (undefined
   without actor sizes);
@@ -33,7 +38,7 @@ import math
 
 import numpy as np
 
-from rigidbench.readouts.physics import MIN_MOTION_M, anchored_positions, generated_displacements
+from rigidbench.readouts.physics import MIN_MOTION_M, anchored_positions, generated_displacements, time_warp
 
 MIN_FRAMES = 2
 IN_VIEW_MIN_PX = 20
@@ -52,9 +57,9 @@ RANSAC_THRESHOLD_PX = 3.0
 
 THRESHOLDS = {
     "disappears": f"empty generated mask (< {DISAPPEAR_MIN_PX} px) on >= {MIN_FRAMES} frames where the reference "
-                  f"mask has >= {IN_VIEW_MIN_PX} px",
+                  f"mask at the matched instant has >= {IN_VIEW_MIN_PX} px",
     "duplicates": f">= 2 components of >= {DUPLICATE_MIN_PX} px and >= {DUPLICATE_MIN_SHARE:g} of the largest on >= "
-                  f"{MIN_FRAMES} frames where the reference does not split",
+                  f"{MIN_FRAMES} frames where the reference at the matched instant does not split",
     "frozen": f"generated displacement < {FROZEN_M * 100:g} cm at every frame while the reference moves more",
     "through_support": f"anchored height below the lowest allowed by > max({THROUGH_TOL_M * 100:g} cm, "
                        f"{THROUGH_TOL_RADII:g} half-sides) on >= {THROUGH_MIN_FRAMES} frames",
@@ -87,18 +92,34 @@ def _splits(mask: np.ndarray) -> bool:
     return big.size >= 2
 
 
+def reference_frames(ctx) -> np.ndarray:
+    """(T,) int: the reference frame each generated frame's masks are compared with, the one nearest the
+    matched instant s t + d of the speed readout (frame 0 before the reference starts, -1 past its last
+    mask frame: not compared); the same frame when the speed is undefined (a reference that does not move)."""
+    w = time_warp(ctx)
+    n_ref = ctx.inputs.ref_masks.shape[0]
+    k = np.arange(ctx.n_frames)
+    if not (math.isfinite(w.speed) and math.isfinite(w.offset_s)):
+        return np.where(k < n_ref, k, -1)
+    matched = np.maximum(np.rint((w.speed * ctx.times_s + w.offset_s) * ctx.fps).astype(int), 0)
+    return np.where(matched < n_ref, matched, -1)
+
+
 def disappears(ctx, a: int) -> dict:
     x = ctx.inputs
-    ref_area = x.ref_masks[:, a].reshape(x.ref_masks.shape[0], -1).sum(axis=1)
+    ref_k = reference_frames(ctx)
+    ref_area = x.ref_masks[:, a].reshape(x.ref_masks.shape[0], -1).sum(axis=1)[ref_k]
     gen_area = x.gen_masks[:, a].reshape(x.gen_masks.shape[0], -1).sum(axis=1)
-    hit = (gen_area < DISAPPEAR_MIN_PX) & (ref_area >= IN_VIEW_MIN_PX)
-    return {"raised": bool(hit.sum() >= MIN_FRAMES), "frames": _frames(hit)}
+    hit = (ref_k >= 0) & (gen_area < DISAPPEAR_MIN_PX) & (ref_area >= IN_VIEW_MIN_PX)
+    return {"raised": bool(hit.sum() >= MIN_FRAMES), "frames": _frames(hit), "reference_frames": ref_k[hit]}
 
 
 def duplicates(ctx, a: int) -> dict:
     x = ctx.inputs
-    hit = np.array([_splits(x.gen_masks[t, a]) and not _splits(x.ref_masks[t, a]) for t in range(ctx.n_frames)])
-    return {"raised": bool(hit.sum() >= MIN_FRAMES), "frames": _frames(hit)}
+    ref_k = reference_frames(ctx)
+    hit = np.array([k >= 0 and _splits(x.gen_masks[t, a]) and not _splits(x.ref_masks[k, a])
+                    for t, k in enumerate(ref_k)], bool)
+    return {"raised": bool(hit.sum() >= MIN_FRAMES), "frames": _frames(hit), "reference_frames": ref_k[hit]}
 
 
 def frozen(ctx, a: int) -> dict:
