@@ -5,6 +5,9 @@ message says which and what to do". Per-example loops record it (and I/O errors)
 failed" and go on with the other examples; anything else is a bug and stops the run with a
 traceback. The command line prints a ``RigidBenchError`` as one line and exits with status 2.
 
+One exception: ``MissingExtra`` (an optional package that is not installed) is a ModuleNotFoundError, so that it
+stops the run instead of failing each example; the command line prints it as one line too.
+
 This module imports nothing, so every layer can raise these errors without importing upward.
 """
 
@@ -67,6 +70,13 @@ class EvaluationError(RigidBenchError):
 
 class ReportError(RigidBenchError):
     """Evaluation runs that cannot be put into one report."""
+
+
+class MissingExtra(ModuleNotFoundError):
+    """An optional package is not installed; the message names the extra that installs it (``rigidbench.extras``).
+
+    Not a ``RigidBenchError`` on purpose: a missing package is no fault of one example, so the per-example loops
+    (which catch ``EXAMPLE_ERRORS``) let it through, and the command line prints it as one line (status 2)."""
 
 
 #: what a per-example loop records as "this example failed" instead of stopping the run

@@ -22,6 +22,7 @@ from collections.abc import Iterator, Mapping
 from typing import Any, Generic, Protocol, TypeVar
 
 from .errors import RigidBenchError, UnknownNameError
+from .extras import explain
 
 
 class Entry(Protocol):
@@ -46,8 +47,9 @@ def load_target(target: str, what: str = "object") -> Any:
             raise RigidBenchError(f"{what} '{target}': no module named '{exc.name}' (is it on PYTHONPATH?)") from None
         if exc.name and exc.name.startswith("rigidbench"):
             raise
-        raise RigidBenchError(f"{what} '{target}' needs the package '{exc.name}', which is not installed; install "
-                              f"the extra that provides it (see pyproject.toml, e.g. pip install -e '.[all]')") from None
+        line = explain(exc, f"{what} '{target}'")
+        raise RigidBenchError(line or f"{what} '{target}' needs the package '{exc.name}', which is not installed: "
+                                      "install it with pip") from None
     try:
         obj = module
         for part in attr.split("."):

@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from rigidbench.errors import UserError
+from rigidbench.errors import MissingExtra, UserError
 from rigidbench.executors import LocalExecutor, RayExecutor, Shard, make_executor
 
 
@@ -53,5 +53,6 @@ def test_bad_executor_and_missing_ray_say_what_to_do(monkeypatch):
     with pytest.raises(UserError, match="choose one of local, ray"):
         make_executor("slurm")
     monkeypatch.setitem(sys.modules, "ray", None)  # as if the [ray] extra were not installed
-    with pytest.raises(UserError, match=r"pip install -e '\.\[ray\]'"):
+    with pytest.raises(MissingExtra, match=r"^--executor ray needs ray, which is not installed: "
+                                           r"pip install 'rigidbench\[ray\]'$"):
         RayExecutor().map(f"{__name__}:Doubler", {"offset": 0}, [1])

@@ -15,17 +15,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..extras import require
+
 log = logging.getLogger(__name__)
 
 
 def import_bpy() -> Any:
-    """Import and return the ``bpy`` module, or raise ImportError saying how to install it."""
-    try:
-        import bpy
-    except ImportError as exc:
-        raise ImportError("Blender as a Python module (bpy 4.5, Python 3.11) is needed for simulation and "
-                          "rendering; install it with `pip install -e '.[sim]'`") from exc
-    return bpy
+    """Import and return the ``bpy`` module, or raise MissingExtra (an ImportError) naming the extra to install."""
+    return require("bpy", "simulation and rendering (Blender as a Python module, bpy 4.5 on Python 3.11)")
 
 
 def import_bpy_into(folder: str | Path) -> bool:

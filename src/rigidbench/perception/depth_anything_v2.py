@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import WeightsUnavailable
+from ..extras import require
 from .video_depth import (autocast_dtype, build_vda_network, check_frames, hf_cached_file, network_size,
                           preprocess_frames)
 
@@ -62,12 +63,8 @@ def _load_checkpoint(path: Path, encoder: str = "vitl", **overrides):
 
 
 def _load_transformers(source: str, offline: bool, cache_dir: str | Path | None = None):
-    try:
-        from transformers import DepthAnythingForDepthEstimation
-    except ModuleNotFoundError:
-        raise WeightsUnavailable("the Depth Anything V2 transformers model needs the 'transformers' package: "
-                                 "pip install -e '.[neural]'") from None
-    return DepthAnythingForDepthEstimation.from_pretrained(source, local_files_only=offline, cache_dir=cache_dir)
+    model = require("transformers", "the Depth Anything V2 transformers model").DepthAnythingForDepthEstimation
+    return model.from_pretrained(source, local_files_only=offline, cache_dir=cache_dir)
 
 
 def load_depth_anything_v2(path: str | Path | None = None, device="cpu", dtype=None, allow_download: bool = False,

@@ -23,7 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
-from ..errors import WeightsUnavailable
+from ..errors import MissingExtra, WeightsUnavailable
+from ..extras import available, require
 from . import weights
 from .device import inference_dtype, resolve_device
 
@@ -83,12 +84,8 @@ def load_dinov2(path: str | None = None, allow_download: bool = False):
     The weights are looked for before ``transformers`` is imported (5 s), so their absence costs nothing."""
     if weights.locate("dinov2", path) is None and not allow_download:
         raise WeightsUnavailable(weights.missing_message("dinov2", path))
-    try:
-        from transformers import Dinov2Model
-    except ModuleNotFoundError:
-        raise WeightsUnavailable("DINOv2 identity features need the 'transformers' package: "
-                                 "pip install -e '.[neural]'") from None
-    return weights.load_pretrained(Dinov2Model, "dinov2", path, allow_download)
+    transformers = require("transformers", "IdDrift (DINOv2 identity features)")
+    return weights.load_pretrained(transformers.Dinov2Model, "dinov2", path, allow_download)
 
 
 def load_identity_features(device: str | None = None, path: str | None = None, allow_download: bool = False,
@@ -179,12 +176,12 @@ def load_feature_nets(device: str | None = None, allow_download: bool = False) -
     try:
         net = load_lpips(allow_download)
         nets.lpips = net.to(resolved())
-    except WeightsUnavailable as exc:
+    except (WeightsUnavailable, MissingExtra) as exc:
         nets.skipped["lpips"] = str(exc)
     try:
         model = load_dinov2(weights.locate("dinov2"), allow_download)
         nets.identity = load_identity_features(device=resolved(), model=model)
-    except WeightsUnavailable as exc:
+    except (WeightsUnavailable, MissingExtra) as exc:  # no weights, or no transformers to run them
         nets.skipped["iddrift"] = str(exc)
     return nets
 
@@ -193,4 +190,4 @@ def feature_nets_key() -> str:
     """The ``FeatureNets.key`` that ``load_feature_nets`` would give here, from which weights are present,
     without loading them (a driver whose workers load the networks elsewhere keys examples with it)."""
     return nets_key(weights.locate("lpips-lin") is not None and weights.locate("alexnet") is not None,
-                    weights.locate("dinov2") is not None)
+                    weights.locate("dinov2") is not None and available("transformers"))

@@ -44,6 +44,7 @@ from typing import Callable
 import numpy as np
 
 from ..atomic import atomic_file
+from ..extras import available, missing
 from ..metrics.background import detect_background_corners
 from ..video import REFERENCE_FPS, Video, align_video, aligned_length, frames_until, reference_times, resize_maps
 from . import weights
@@ -145,11 +146,14 @@ class NeuralBackend:
         return f"{name}:{found if self.pretrained else 'random'}:{code}"
 
     def missing_weights(self) -> list[str]:
-        """One message per weight file this backend would need but cannot find (nothing to fetch when empty)."""
-
+        """One message per weight file this backend would need but cannot find (nothing to fetch when empty);
+        MissingExtra first when transformers, which runs SAM 2.1 and Depth Anything V2, is not installed."""
+        names = [self._weight_name(r) for r in ("sam2", "cotracker", "depth") if r not in self._injected]
+        for name in names:
+            if name in ("sam2", "dav2") and not available("transformers"):
+                raise missing("transformers", f"neural perception ({weights.spec(name).title})")
         if self.allow_download:
             return []
-        names = [self._weight_name(r) for r in ("sam2", "cotracker", "depth") if r not in self._injected]
         if "cotracker" in names:
             names.append("cotracker-code")
             if not self.pretrained:

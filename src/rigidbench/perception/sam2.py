@@ -24,6 +24,7 @@ import logging
 import numpy as np
 
 from ..errors import WeightsUnavailable
+from ..extras import require
 from . import weights
 from .device import inference_dtype
 
@@ -56,12 +57,8 @@ def load_sam2(path: str | None = None, device: str = "cpu", dtype=None, allow_do
     before importing ``transformers``."""
     if weights.locate("sam2", path) is None and not allow_download:
         raise WeightsUnavailable(weights.missing_message("sam2", path))
-    try:
-        from transformers import Sam2VideoModel
-    except ModuleNotFoundError:
-        raise WeightsUnavailable("SAM 2.1 actor masks need the 'transformers' package (>= 4.56): "
-                                 "pip install -e '.[neural]'") from None
-    model = weights.load_pretrained(Sam2VideoModel, "sam2", path, allow_download)
+    transformers = require("transformers", "SAM 2.1 actor masks (neural perception)")
+    model = weights.load_pretrained(transformers.Sam2VideoModel, "sam2", path, allow_download)
     dtype = dtype if dtype is not None else inference_dtype("sam2", device)
     return model.to(device=device, dtype=dtype).eval()
 

@@ -33,6 +33,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import WeightsUnavailable
+from ..extras import available, require
 
 log = logging.getLogger(__name__)
 
@@ -91,10 +92,10 @@ def expected_state_dict_shapes(encoder: str = "vitl", **overrides) -> dict[str, 
 
 def hf_cached_file(repo: str, filename: str, cache_dir: str | Path | None) -> Path | None:
     """Path of ``filename`` of ``repo`` in the Hugging Face cache, or None."""
-    try:
-        from huggingface_hub import try_to_load_from_cache
-    except ModuleNotFoundError:
+    if not available("huggingface_hub"):  # nothing can be found there without it; missing_message says so
         return None
+    from huggingface_hub import try_to_load_from_cache
+
     found = try_to_load_from_cache(repo, filename, cache_dir=None if cache_dir is None else str(cache_dir))
     return Path(found) if isinstance(found, str) and Path(found).is_file() else None
 
@@ -123,11 +124,7 @@ def _looked_at(path, cache_dir) -> str:
 
 
 def _download(cache_dir) -> Path:
-    try:
-        from huggingface_hub import hf_hub_download
-    except ModuleNotFoundError:
-        raise WeightsUnavailable("downloading Video Depth Anything needs huggingface_hub: "
-                                 "pip install -e '.[neural]'") from None
+    hf_hub_download = require("huggingface_hub", "downloading Video Depth Anything").hf_hub_download
     try:
         return Path(hf_hub_download(VDA_REPO, VDA_FILENAME, cache_dir=None if cache_dir is None else str(cache_dir)))
     except OSError as err:  # hub HTTP and offline errors are OSErrors

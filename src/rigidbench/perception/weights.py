@@ -19,7 +19,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import WeightsUnavailable
+from ..errors import UserError, WeightsUnavailable
+from .. import extras
 
 LPIPS_LIN_FILE = Path("weights") / "v0.1" / "alex.pth"
 
@@ -90,7 +91,7 @@ def torch_hub_dir() -> Path:
     must cost nothing: an evaluation without them never imports the network's library)."""
     import sys
 
-    if "torch" in sys.modules:  # honours torch.hub.set_dir
+    if sys.modules.get("torch") is not None:  # loaded: honours torch.hub.set_dir
         return Path(sys.modules["torch"].hub.get_dir())
     # torch's own rule (torch/hub.py, _get_torch_home): $TORCH_HOME, else $XDG_CACHE_HOME/torch, then /hub
     home = os.environ.get("TORCH_HOME") or os.path.join(os.environ.get("XDG_CACHE_HOME", "~/.cache"), "torch")
@@ -98,6 +99,10 @@ def torch_hub_dir() -> Path:
 
 
 def _hf_cached_file(repo_id: str, filename: str) -> Path | None:
+    """The file in the Hugging Face cache; None when absent, or when huggingface_hub (which finds it there) is
+    not installed (``looked_in`` then says so)."""
+    if not extras.available("huggingface_hub"):
+        return None
     from huggingface_hub import try_to_load_from_cache
 
     found = try_to_load_from_cache(repo_id, filename)
@@ -164,7 +169,9 @@ def looked_in(name: str, path: str | Path | None = None) -> list[str]:
             places.append(f"${w.env}={value}" + ("" if Path(value).expanduser().exists() else " (does not exist)"))
         if value:
             return places
-    if w.kind in ("hf-repo", "hf-file"):
+    if w.kind in ("hf-repo", "hf-file") and not extras.available("huggingface_hub"):
+        places.append(f"not the Hugging Face cache ({extras.message('huggingface_hub', 'looking there')})")
+    elif w.kind in ("hf-repo", "hf-file"):
         repo_dir = "models--" + w.source.replace("/", "--")
         places.append(f"the Hugging Face cache {hf_cache_dir() / repo_dir}")
     elif w.kind == "torch-hub-repo":
@@ -179,7 +186,8 @@ def looked_in(name: str, path: str | Path | None = None) -> list[str]:
 def fetch_hint(name: str) -> str:
     w = spec(name)
     if w.kind == "package":
-        return f"install the package with `pip install {w.source}`"
+        return (f"install the package with `pip install --no-deps {w.source}` (its declared torchvision is not "
+                "needed; docs/install.md)")
     hint = (f"fetch them once with `rigidbench weights --download {w.name}` on a machine with network access "
             f"(they go to the standard cache, which can be copied to an offline machine)")
     return hint + (f", or set {w.env} to a local copy" if w.env else "")
@@ -237,22 +245,18 @@ def download(name: str) -> Path:
     """Fetch ``name`` into its standard cache and return where it is; raises WeightsUnavailable on failure."""
     w = spec(name)
     try:
+        purpose = f"downloading the {w.title} weights"
         if w.kind == "hf-repo":
-            from huggingface_hub import snapshot_download
-
-            return Path(snapshot_download(w.source, allow_patterns=["*.json", "*.safetensors", "*.txt"]))
+            hub = extras.require("huggingface_hub", purpose)
+            return Path(hub.snapshot_download(w.source, allow_patterns=["*.json", "*.safetensors", "*.txt"]))
         if w.kind == "hf-file":
-            from huggingface_hub import hf_hub_download
-
-            return Path(hf_hub_download(w.source, w.filename))
+            return Path(extras.require("huggingface_hub", purpose).hf_hub_download(w.source, w.filename))
         if w.kind == "torch-hub-repo":
-            import torch
-
+            torch = extras.require("torch", purpose)
             torch.hub.list(w.source, trust_repo=True)  # clones the repository into the hub cache
             return torch_hub_dir() / w.filename
         if w.kind == "url":
-            import torch
-
+            torch = extras.require("torch", purpose)
             dst = torch_hub_dir() / "checkpoints" / w.filename
             dst.parent.mkdir(parents=True, exist_ok=True)
             torch.hub.download_url_to_file(w.source, str(dst), progress=True)
@@ -300,7 +304,7 @@ def format_listing(rows: list[dict]) -> str:
 
 def cmd_weights(args, ctx=None) -> int:
     """`rigidbench weights`: args.list (bool), args.download (None or list of names; [] = defaults),
-    args.json (bool). Returns 0 on success, 1 if a download failed or a name is unknown."""
+    args.json (bool). Returns 0 on success, 1 if a download failed; an unknown name is a UserError."""
     import json
     import sys
 
@@ -313,8 +317,7 @@ def cmd_weights(args, ctx=None) -> int:
         for name in names:
             spec(name)
     except KeyError as exc:
-        print(f"error: {exc.args[0]}", file=sys.stderr)
-        return 1
+        raise UserError(f"--download: {exc.args[0]}") from None
     failed = 0
     for name in names:
         w = WEIGHTS[name]

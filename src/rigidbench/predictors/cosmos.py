@@ -36,6 +36,7 @@ import sys
 from typing import Any
 
 from ..errors import PredictionError, RigidBenchError, WeightsUnavailable
+from ..extras import install_command
 from .base import PredictContext
 from .local import LocalVideoModel
 from .options import CosmosOptions
@@ -55,7 +56,7 @@ LICENCE_NOTICE = (
     "Trustworthy AI terms (https://www.nvidia.com/en-us/agreements/trustworthy-ai/terms/). RigidBench's prompts are "
     "fixed descriptions of rigid-body scenes; whether that, or anything else, is a substantially similar guardrail "
     "for your use is yours to judge.")
-GUARDRAIL_EXTRA = "pip install 'rigidbench[guardrail]'"
+GUARDRAIL_EXTRA = install_command("guardrail")
 
 _PASS_THROUGH = None  # the pass-through checker class, built on first use (it subclasses torch.nn.Module)
 _GUARDRAIL = None  # the failing-loudly subclass of cosmos_guardrail.CosmosSafetyChecker, built on first use
