@@ -10,10 +10,13 @@ import os
 import sys
 from pathlib import Path
 
+from .atomic import WRITE_ERRNOS, describe_os_error
 from .commands import (Command, data as data_commands, models as model_commands, probing as probe_commands,
                        scoring as scoring_commands, training as train_commands)
 from .context import RunContext
 from .errors import RigidBenchError, UserError
+from .extras import explain
+from .logsafe import configure_logging
 
 CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
 
@@ -47,8 +50,16 @@ def load_plugins(modules) -> None:
             raise
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse whose refusal of a command line is one line, as every other user error:
+    ``rigidbench CMD: error: argument --limit: ... (rigidbench CMD --help)``, exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="rigidbench",
         description="RigidBench: simulator-grounded evaluation of rigid-body physics in video generation models.")
     parser.add_argument("--config", action="append", default=[], metavar="DIR",
@@ -67,8 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+    configure_logging(logging.DEBUG if args.verbose else logging.INFO)  # HTTP libraries quiet, URLs scrubbed
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
@@ -78,6 +88,17 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args, ctx) or 0)
     except RigidBenchError as exc:
         print(f"rigidbench {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # an output that cannot be written (a full disk, a read-only folder, ...): one line
+        if exc.errno not in WRITE_ERRNOS:
+            raise
+        print(f"rigidbench {args.command}: error: {describe_os_error(exc)}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:  # an optional package not installed: one line naming its extra
+        line = explain(exc, "this command")
+        if line is None:
+            raise
+        print(f"rigidbench {args.command}: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"rigidbench {args.command}: interrupted; rerun the same command to resume", file=sys.stderr)

@@ -30,21 +30,34 @@ The driver (``run_stage``) then:
 
 So a rerun with other settings redoes exactly the examples whose key changed, a killed run resumes from
 the examples it had not committed, and the same example gives the same files whichever executor ran it.
+
+Several processes may work on one folder at once (shards, or the same command started twice): whoever works
+on an item holds its lock (``ItemLock``: ``fcntl.flock`` on ``ROOT/.stages/NAME/staging/<id>.lock``, taken by
+``ItemRunner`` for as long as it makes, commits and records the item; the kernel drops it when the process
+dies, so a killed run leaves no stale lock). Having taken it, the runner reads the ledger again: an item that
+another process finished since the plan is not made twice (it counts as up to date). An item whose lock
+another process holds is skipped and reported as being done elsewhere (``StageReport.elsewhere``), or, with
+``wait`` (``--wait``), waited for after the other items. A stage's ``finish`` runs under a run-level lock
+(``.stages/NAME/finish.lock``), so processes that finish at once write their run-level files one after the
+other, the last from everything done by then.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
+import os
 import shutil
 import time
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Iterator, Mapping, Sequence
 
-from .atomic import replace_path
+from .atomic import as_write_error, release_open_writers, replace_path
 from .errors import EXAMPLE_ERRORS, UserError
 from .executors import Executor, LocalExecutor, Resources, Shard
 from .jsonio import read_json, write_json
@@ -55,6 +68,10 @@ log = logging.getLogger(__name__)
 LEDGER_DIR = ".stages"  # hidden: bundle listings, validate and evaluate skip it
 STAGING_DIR = "staging"
 RUNNER = "rigidbench.driver:ItemRunner"
+ELSEWHERE = "elsewhere"  # an item's status when another process holds its lock (it is being done there)
+FINISH_LOCK = "finish.lock"  # the run-level lock around a stage's finish (e.g. evaluate's results.json)
+LOCK_POLL_S = 0.2  # how often a process waiting for another's lock (--wait) looks again
+STOPPED = "stopped"  # a record's status when the example's ledger entry could not be written
 
 Progress = Callable[[int, int], None]
 
@@ -150,8 +167,10 @@ class Stage(ABC):
         return None
 
     def intact(self, item_id: str) -> bool:
-        """Whether the committed output of ``item_id`` is still there and sound (checked before skipping)."""
-        return True
+        """Whether the committed output of ``item_id`` is still there and sound (checked before skipping). By
+        default: every output its ledger entry lists is still there as it was committed (``outputs_intact``);
+        a stage that checks more calls this too."""
+        return outputs_intact(self.root, read_ledger(self.root, self.name, item_id))
 
     def adopt(self, item_id: str, payload: Any, key: str) -> dict | str | None:
         """An output made before ledgers existed that counts as made with ``key``: its result dict (the
@@ -182,6 +201,10 @@ class StageWorker(ABC):
 
     def stop(self) -> None:
         """Start nothing new (a graceful interrupt); optional."""
+
+    def stopped(self) -> bool:
+        """Whether ``stop`` was called (a runner waiting for another process's lock then gives up)."""
+        return False
 
     def close(self) -> None:
         """Release what the worker holds (models, sessions)."""
@@ -230,8 +253,62 @@ def staging_path(root: str | Path, name: str, item_id: str) -> Path:
     return stage_dir(root, name) / STAGING_DIR / item_id
 
 
+def lock_path(root: str | Path, name: str, item_id: str) -> Path:
+    """The lock file of ``item_id`` (``ItemLock``), beside its staging folder."""
+    return stage_dir(root, name) / STAGING_DIR / f"{item_id}.lock"
+
+
+class ItemLock:
+    """An exclusive lock between processes (``fcntl.flock`` on ``path``), held from ``acquire`` to ``release``.
+    The kernel drops it when its process dies (a kill -9 leaves no stale lock). The holder removes the file
+    when it releases; a process that locked a file removed meanwhile (its holder released it between this
+    process's open and flock) sees another file at the path and tries again, so two never hold it at once."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.fd: int | None = None
+
+    def acquire(self, wait: bool = False, stopped: Callable[[], bool] = lambda: False) -> bool:
+        """Take the lock: True when taken; False when another process holds it (and ``wait`` is off, or
+        ``stopped()`` became true while waiting). ``wait``: look again every LOCK_POLL_S seconds."""
+        while True:
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            except FileNotFoundError:  # another run removed the empty folder between the two: again
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                if not wait or stopped():
+                    return False
+                time.sleep(LOCK_POLL_S)
+                continue
+            try:
+                at_path, locked = os.stat(self.path), os.fstat(fd)
+                current = (at_path.st_dev, at_path.st_ino) == (locked.st_dev, locked.st_ino)
+            except FileNotFoundError:
+                current = False
+            if current:
+                self.fd = fd
+                return True
+            os.close(fd)  # the file its holder removed on release: lock the one at the path now
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        try:
+            self.path.unlink(missing_ok=True)
+        finally:
+            os.close(self.fd)  # closing drops the lock
+            self.fd = None
+
+
 def fresh_staging(root: str | Path, name: str, item_id: str) -> Path:
-    """An empty staging folder for ``item_id`` (a killed run's leftovers there are removed first)."""
+    """An empty staging folder for ``item_id`` (a killed run's leftovers there are removed first). Only the
+    holder of the item's lock (``ItemLock``) makes or removes it, so processes sharing a folder never meet
+    in it."""
     path = staging_path(root, name, item_id)
     if path.exists() or path.is_symlink():
         shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
@@ -259,10 +336,52 @@ def commit(staging: Path, root: Path, outputs: Sequence[str]) -> None:
         replace_path(src, dst)
 
 
+#: the kinds of committed output ``output_kinds`` records; a JSON file's kind is the type of its document
+_JSON_KINDS: dict[str, type] = {"object": dict, "list": list}
+
+
+def output_kinds(root: Path, outputs: Sequence[str]) -> dict[str, str]:
+    """``{output: kind}`` of committed outputs (paths under ``root``), for the ledger entry: "directory", a JSON
+    file's document type ("object" or "list"), or "file"."""
+    kinds = {}
+    for rel in outputs:
+        path = Path(root) / rel
+        kind = "directory" if path.is_dir() else "file"
+        if kind == "file" and path.suffix == ".json":
+            doc = read_json(path, "it is checked as a plain file")
+            kind = next((k for k, t in _JSON_KINDS.items() if isinstance(doc, t)), kind)
+        kinds[rel] = kind
+    return kinds
+
+
+def outputs_intact(root: str | Path, entry: dict | None) -> bool:
+    """Whether every output a ledger entry lists (``output_kinds``, recorded at commit) is still there as it
+    was committed: a directory still a directory, a file still a file, a JSON file still parses to the same
+    type of document (a truncated, emptied or replaced one does not). An entry from before outputs were
+    recorded lists none: nothing to check. A damaged JSON file is logged as a warning naming it."""
+    listed = (entry or {}).get("outputs") or {}
+    if not isinstance(listed, dict):
+        return False
+    for rel, kind in listed.items():
+        path = Path(root) / rel
+        if kind == "directory":
+            ok = path.is_dir()
+        elif kind in _JSON_KINDS:
+            ok = read_json(path, "the example is made again", expect=_JSON_KINDS[kind]) is not None
+        else:
+            ok = path.is_file()
+        if not ok:
+            return False
+    return True
+
+
 class ItemRunner:
-    """What an executor calls per example, wherever it runs: builds the stage's worker from the job, runs
-    it into a fresh staging folder, commits the outputs and writes the ledger entry. Task: ``{"id",
-    "payload", "key"}``; returns the ledger entry."""
+    """What an executor calls per example, wherever it runs: builds the stage's worker from the job, takes
+    the example's lock (``ItemLock``), runs the worker into a fresh staging folder, commits the outputs and
+    writes the ledger entry. Task: ``{"id", "payload", "key"}``, and from ``plan`` ``"seen"`` (the ledger entry
+    the plan read, as a digest) and ``"wait"``; returns the ledger entry. Status ``ELSEWHERE``: another
+    process holds the lock (nothing done here); an entry with ``"elsewhere": True``: another process finished
+    the example since the plan (the ledger's entry, nothing done here)."""
 
     def __init__(self, job: dict, instance: StageWorker | None = None):
         self.stage, self.root = job["stage"], Path(job["root"])
@@ -270,23 +389,54 @@ class ItemRunner:
 
     def __call__(self, task: dict, progress: Progress | None = None) -> dict:
         item_id, key = task["id"], task["key"]
+        lock = ItemLock(lock_path(self.root, self.stage, item_id))
+        try:
+            taken = lock.acquire(wait=bool(task.get("wait")), stopped=self.worker.stopped)
+        except OSError as exc:  # the lock file cannot be made (a read-only folder, a full disk)
+            return {"stage": self.stage, "id": item_id, "key": key, "status": STOPPED,
+                    "error": str(as_write_error(exc, lock.path))}
+        if not taken:
+            return {"stage": self.stage, "id": item_id, "key": key, "status": ELSEWHERE, "result": {},
+                    "error": "being done by another process"}
+        try:
+            if "seen" in task:  # another process may have finished it since the plan read the ledger
+                entry = read_ledger(self.root, self.stage, item_id)
+                if (entry is not None and entry.get("key") == key and entry.get("status") in ("succeeded", "failed")
+                        and digest(entry) != task["seen"]):
+                    return {**entry, "elsewhere": True}
+            return self._make(task, progress)
+        finally:
+            lock.release()
+
+    def _make(self, task: dict, progress: Progress | None = None) -> dict:
+        item_id, key = task["id"], task["key"]
         started = time.time()
         staging = None
         try:
             staging = fresh_staging(self.root, self.stage, item_id)
             made = self.worker.run(item_id, task.get("payload"), staging, progress or (lambda done, total: None))
             if made.status in ("succeeded", "failed"):
+                committed = {}
                 if made.status == "succeeded":
                     commit(staging, self.root, made.outputs)
+                    committed = {"outputs": output_kinds(self.root, made.outputs)}  # what intactness checks
                 return write_ledger(self.root, self.stage, item_id, key, made.status, result=made.result,
-                                    error=made.error, seconds=time.time() - started)
+                                    error=made.error, seconds=time.time() - started, **committed)
             # interrupted: nothing recorded, the example runs again
             return {"stage": self.stage, "id": item_id, "key": key, "status": made.status, "error": made.error,
                     "result": made.result, "seconds": round(time.time() - started, 3)}
         except EXAMPLE_ERRORS as exc:
+            if isinstance(exc, OSError) and staging is not None:  # a write into staging failed (a full disk)
+                release_open_writers(exc, staging)
+                if exc.filename is None:  # a failed write() names no file: name the example's folder
+                    exc = as_write_error(exc, staging)
             error = str(exc) or type(exc).__name__
-            return write_ledger(self.root, self.stage, item_id, key, "failed", error=error,
-                                seconds=time.time() - started)
+            try:
+                return write_ledger(self.root, self.stage, item_id, key, "failed", error=error,
+                                    seconds=time.time() - started)
+            except OSError as unrecorded:  # not even the ledger can be written: nothing can go on
+                return {"stage": self.stage, "id": item_id, "key": key, "status": STOPPED,
+                        "error": str(as_write_error(unrecorded, ledger_path(self.root, self.stage, item_id)))}
         finally:
             if staging is not None:
                 shutil.rmtree(staging, ignore_errors=True)
@@ -298,6 +448,20 @@ class ItemRunner:
         self.worker.close()
 
 
+class _Lent:
+    """A runner lent to an executor for one round of ``run_stage``: the executor's ``close`` at the end of the
+    round is left to ``run_stage``, which may need the runner for a second round (``--wait``)."""
+
+    def __init__(self, runner: ItemRunner):
+        self.runner = runner
+
+    def __call__(self, task: dict, progress: Progress | None = None) -> dict:
+        return self.runner(task, progress)
+
+    def close(self) -> None:
+        pass
+
+
 # -- the run ----------------------------------------------------------------------------------------------
 
 
@@ -305,7 +469,9 @@ class ItemRunner:
 class StageReport:
     """What a stage run did. ``selected``: the ids, in order; ``ran``: committed now; ``reused``: up to date
     (skipped); ``failed``: id -> reason; ``redone``: id -> why an earlier output was not reused;
-    ``results``: id -> the worker's result (ran and reused); ``interrupted``: ids stopped before they ran."""
+    ``results``: id -> the worker's result (ran and reused); ``interrupted``: ids stopped before they ran;
+    ``elsewhere``: ids another process was working on (their lock was held), not done here; ``keys``: id ->
+    the key this run computed (``plan``)."""
 
     stage: str
     root: Path
@@ -316,6 +482,8 @@ class StageReport:
     redone: dict[str, str] = field(default_factory=dict)
     results: dict[str, dict] = field(default_factory=dict)
     interrupted: list[str] = field(default_factory=list)
+    elsewhere: list[str] = field(default_factory=list)
+    keys: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     completed: bool = False  # every selected example was attempted (not stopped by an interrupt or a bug)
 
@@ -330,19 +498,23 @@ class StageReport:
         parts = [f"{len(self.ran)} done", f"{len(self.reused)} up to date", f"{len(self.failed)} failed"]
         if self.interrupted:
             parts.append(f"{len(self.interrupted)} not started")
+        if self.elsewhere:
+            parts.append(f"{len(self.elsewhere)} being done by another process")
         return f"{self.stage}: {', '.join(parts)} of {len(self.selected)} {unit}s -> {self.root}"
 
     def to_json(self) -> dict:
         return {"stage": self.stage, "root": str(self.root), "selected": len(self.selected), "ran": self.ran,
                 "reused": self.reused, "failed": self.failed, "redone": self.redone,
-                "interrupted": self.interrupted, "seconds": round(self.seconds, 3)}
+                "interrupted": self.interrupted, "elsewhere": self.elsewhere, "seconds": round(self.seconds, 3)}
 
 
 def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: StageReport,
          write: bool = True) -> list[dict]:
     """The tasks still to run: every selected id whose ledger entry does not show a committed output with
     the same key (the driver's one resume rule); fills ``report.reused``, ``.failed`` (a key that cannot be
-    computed) and ``.redone``. ``write=False`` (a dry run) writes no ledger entry for adopted outputs."""
+    computed), ``.redone`` and ``.keys``. ``write=False`` (a dry run) writes no ledger entry for adopted
+    outputs. Each task holds ``seen``, a digest of the ledger entry read here (None: none), by which its runner
+    tells whether another process has finished the example since."""
     todo = []
     for item_id in ids:
         payload = items[item_id]
@@ -352,6 +524,7 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
             report.failed[item_id] = str(exc)
             log.warning("%s: example %s failed: %s", stage.name, item_id, exc)
             continue
+        report.keys[item_id] = key
         entry = read_ledger(stage.root, stage.name, item_id)
         why = None
         if entry is None:
@@ -376,8 +549,31 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
             continue
         if why is not None:
             report.redone[item_id] = why
-        todo.append({"id": item_id, "payload": payload, "key": key})
+        todo.append({"id": item_id, "payload": payload, "key": key, "seen": None if entry is None else digest(entry)})
     return todo
+
+
+def ledger_outcomes(stage: Stage, report: StageReport) -> tuple[dict[str, dict], dict[str, str]]:
+    """What the ledger holds now for the selected examples, whichever process made them (for run-level files
+    such as evaluate's results.json): ``done``, id -> ledger entry of those whose latest entry, with this run's
+    key, succeeded; ``failed``, id -> reason of those whose latest entry failed, and of those whose key could
+    not be computed. In selection order; an example not attempted, or still being made elsewhere, is in
+    neither."""
+    done: dict[str, dict] = {}
+    failed: dict[str, str] = {}
+    for item_id in report.selected:
+        if item_id not in report.keys:
+            if item_id in report.failed:
+                failed[item_id] = report.failed[item_id]
+            continue
+        entry = read_ledger(stage.root, stage.name, item_id)
+        if entry is None or entry.get("key") != report.keys[item_id]:
+            continue
+        if entry.get("status") == "succeeded":
+            done[item_id] = entry
+        elif entry.get("status") == "failed":
+            failed[item_id] = entry.get("error") or "failed"
+    return done, failed
 
 
 def _remove_if_empty(path: Path) -> None:
@@ -387,21 +583,66 @@ def _remove_if_empty(path: Path) -> None:
         pass
 
 
+def _remove_leftovers(stage: Stage, item_id: str) -> None:
+    """Remove a killed run's staging leftovers of ``item_id`` (its folder, its lock file), an example that is
+    done after all; not while another process holds its lock (it is working on the example again)."""
+    leftover = staging_path(stage.root, stage.name, item_id)
+    lock = ItemLock(lock_path(stage.root, stage.name, item_id))
+    if not (leftover.exists() or lock.path.exists()):
+        return
+    try:
+        if lock.acquire():
+            shutil.rmtree(leftover, ignore_errors=True)
+    except OSError:  # a folder that cannot be written: the leftovers stay
+        pass
+    finally:
+        lock.release()
+
+
+@contextmanager
+def _finishing(stage: Stage) -> Iterator[None]:
+    """The run-level lock (``FINISH_LOCK``) held around ``stage.finish``: processes that finish at once write
+    their run-level files one after the other. None when the stage has no ledger folder (nothing ran)."""
+    folder = stage_dir(stage.root, stage.name)
+    lock = ItemLock(folder / FINISH_LOCK)
+    try:
+        if folder.is_dir():
+            lock.acquire(wait=True)
+    except OSError:  # a folder that cannot be written: finish says so itself
+        pass
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+_WAIT = False  # run_stage's default for ``wait`` (``wait_for_others``)
+
+
+def wait_for_others(flag: bool) -> None:
+    """Whether ``run_stage`` waits for the examples another process is working on (True: ``--wait``) or skips
+    them (False, the default) when its caller does not say; the command line sets it once per command."""
+    global _WAIT
+    _WAIT = bool(flag)
+
+
 def run_stage(stage: Stage, selection: Selection = Selection(), executor: Executor | None = None,
-              progress: bool = True, on_result: Callable[[str, dict], None] | None = None) -> StageReport:
+              progress: bool = True, on_result: Callable[[str, dict], None] | None = None,
+              wait: bool | None = None) -> StageReport:
     """Run ``stage`` on the selected examples (see the module docstring); returns the report. ``on_result(id,
-    ledger entry)`` is called on this process as each example finishes (e.g. to update a shared record)."""
+    ledger entry)`` is called on this process as each example finishes (e.g. to update a shared record).
+    ``wait``: wait for the examples another process is working on (after the others; default:
+    ``wait_for_others``), rather than skip them (``report.elsewhere``)."""
     from tqdm import tqdm
 
+    wait = _WAIT if wait is None else wait
     started = time.time()
     items = stage.items()
     ids = selection.apply(list(items), stage.where)
     report = StageReport(stage.name, stage.root, selected=ids)
     todo = plan(stage, ids, items, report)
-    for item_id in report.reused:  # a killed run's leftovers of an example that is done after all
-        leftover = staging_path(stage.root, stage.name, item_id)
-        if leftover.exists():
-            shutil.rmtree(leftover, ignore_errors=True)
+    for item_id in report.reused:
+        _remove_leftovers(stage, item_id)
     if report.reused:
         log.info("%s: %d of %d selected %ss are up to date in %s; skipping them", stage.name, len(report.reused),
                  len(ids), stage.unit, stage.root)
@@ -425,11 +666,18 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
         sub["done"][task["id"]] = done
         sub["bar"].update(step)
 
+    deferred: list[dict] = []  # another process held them in the first round: waited for in a second (wait)
+
     def collect(task: dict, entry: dict) -> None:
         item_id = task["id"]
         status = entry.get("status")
-        if status == "succeeded":
-            report.ran.append(item_id)
+        if status == ELSEWHERE:
+            if wait and not task.get("wait"):
+                deferred.append({**task, "wait": True})
+                return
+            report.elsewhere.append(item_id)
+        elif status == "succeeded":  # made here, or by another process since the plan (then up to date)
+            (report.reused if entry.get("elsewhere") else report.ran).append(item_id)
             report.results[item_id] = entry.get("result") or {}
         elif status == "failed":
             report.failed[item_id] = entry.get("error") or "failed"
@@ -437,33 +685,54 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
                 bar.write(f"FAILED {item_id}: {report.failed[item_id]}")
             else:
                 log.warning("%s: example %s failed: %s", stage.name, item_id, report.failed[item_id])
+        elif status == STOPPED:  # its ledger entry cannot be written (ItemRunner): stop, as one clear line
+            report.interrupted.append(item_id)
+            raise UserError(f"{stage.name} stopped at example {item_id}: {entry.get('error')}")
         else:
             report.interrupted.append(item_id)
         bar.update(1)
-        if on_result is not None:
+        if on_result is not None and status != ELSEWHERE:
             on_result(item_id, entry)
 
     job = {"stage": stage.name, "root": str(Path(stage.root).resolve()), "worker": stage.worker, "job": stage.job()}
     try:
         if todo:
-            instance = stage.worker_instance() if isinstance(executor, LocalExecutor) else None
-            runner = ItemRunner(job, instance) if isinstance(executor, LocalExecutor) else None
-            executor.map(RUNNER, job, todo, stage.resources, on_result=collect, instance=runner,
-                         on_progress=on_progress if stage.steps else None)
+            runner = ItemRunner(job, stage.worker_instance()) if isinstance(executor, LocalExecutor) else None
+            try:
+                tasks = todo
+                while tasks:  # a second round only for the examples waited for (wait)
+                    executor.map(RUNNER, job, tasks, stage.resources, on_result=collect,
+                                 instance=_Lent(runner) if runner is not None else None,
+                                 on_progress=on_progress if stage.steps else None)
+                    tasks, deferred[:] = list(deferred), []
+                    if tasks:
+                        log.info("%s: waiting for %d %s(s) that another process is working on in %s", stage.name,
+                                 len(tasks), stage.unit, stage.root)
+            finally:
+                if runner is not None:
+                    runner.close()
         report.completed = True
     finally:
         bar.close()
         if sub["bar"] is not None:
             sub["bar"].close()
-        finished = set(report.ran) | set(report.failed) | set(report.interrupted)
-        report.interrupted += [t["id"] for t in todo if t["id"] not in finished and t["id"] not in report.interrupted]
+        finished = set(report.ran) | set(report.reused) | set(report.failed) | set(report.interrupted) \
+            | set(report.elsewhere)
+        report.interrupted += [t["id"] for t in todo if t["id"] not in finished]
         report.ran.sort(key=ids.index)
+        report.reused.sort(key=ids.index)
         report.seconds = time.time() - started
+        if report.elsewhere:
+            log.warning("%s: %d %s(s) are being done by another process in %s, not here: %s; rerun when it is done "
+                        "(or pass --wait to wait for them)", stage.name, len(report.elsewhere), stage.unit, stage.root,
+                        ", ".join(report.elsewhere[:10]) + (" ..." if len(report.elsewhere) > 10 else ""))
         _remove_if_empty(stage_dir(stage.root, stage.name) / STAGING_DIR)
-        stage.finish(report)
+        with _finishing(stage):
+            stage.finish(report)
     return report
 
 
-__all__ = ["ItemResult", "ItemRunner", "LEDGER_DIR", "Selection", "Stage", "StageReport", "StageWorker", "commit",
-           "digest", "file_digest", "fresh_staging", "ledger_path", "plan", "read_ledger", "run_stage", "stage_dir",
-           "staging_path", "write_ledger"]
+__all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "LEDGER_DIR", "Selection", "Stage", "StageReport",
+           "StageWorker", "commit", "digest", "file_digest", "fresh_staging", "ledger_outcomes", "ledger_path",
+           "lock_path", "output_kinds", "outputs_intact", "plan", "read_ledger", "run_stage", "stage_dir",
+           "staging_path", "wait_for_others", "write_ledger"]

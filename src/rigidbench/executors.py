@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 from .errors import UserError
+from .extras import require
+from .logsafe import configure_logging
 from .registry import load_target
 
 log = logging.getLogger(__name__)
@@ -169,11 +171,7 @@ class RayExecutor(Executor):
     init_options: dict = field(default_factory=dict)
 
     def _ray(self):
-        try:
-            import ray
-        except ModuleNotFoundError:
-            raise UserError("--executor ray needs Ray: pip install -e '.[ray]' (or pip install 'rigidbench[ray]')") \
-                from None
+        ray = require("ray", "--executor ray")
         if not ray.is_initialized():
             ray.init(address=self.address, ignore_reinit_error=True, log_to_driver=False, **self.init_options)
         return ray
@@ -266,7 +264,7 @@ def _child_main() -> None:
     def send(*msg: Any) -> None:
         out.write(json.dumps(msg) + "\n")
 
-    logging.basicConfig(level=logging.WARNING, format=f"%(levelname)s [{task.get('label', '')}] %(name)s: %(message)s")
+    configure_logging(logging.WARNING, f"%(levelname)s [{task.get('label', '')}] %(name)s: %(message)s")
     worker = load_target(task["worker"], "worker")(task["job"])
     try:
         record = worker(task["item"], progress=lambda done, total: send("progress", int(done), int(total)))

@@ -147,6 +147,13 @@ def _as_our_renders(data: Path, dst: Path, monkeypatch) -> Path:
         meta.pop("source")
         meta["preset"] = "test"
         meta_path.write_text(json.dumps(meta))
+    from PIL import Image
+
+    for png in (dst / "eval").glob("*/frames/*.png"):  # our renders are RGB PNGs; the published ones RGBA
+        with Image.open(png) as im:
+            rgb = im.convert("RGB")
+        png.unlink()
+        rgb.save(png)
     real = render.B.check_bundle
     monkeypatch.setattr(render.B, "check_bundle", lambda path, **kw: [p for p in real(path, **kw)
                                                                      if not p.startswith("scene_spec.json")])

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import stat
 import subprocess
@@ -70,11 +71,11 @@ def run(split, out, config, **options):
     return predict(MODEL, split, out, ctx, progress=False)
 
 
-def spawn(server, split, out, config, concurrency=1, code=CLI, verbose=False):
+def spawn(server, split, out, config, concurrency=1, code=CLI, verbose=False, extra=()):
     """``rigidbench predict`` in a child process (its own session, so signals reach only it)."""
     env = {**os.environ, "REPLICATE_API_TOKEN": TOKEN, "REPLICATE_BASE_URL": server.url, "PYTHONUNBUFFERED": "1"}
     args = [*(["-v"] if verbose else []), "--config", str(config), "predict", MODEL, "--data", str(split), "--out",
-            str(out), "--concurrency", str(concurrency)]
+            str(out), "--concurrency", str(concurrency), *extra]
     return subprocess.Popen([sys.executable, "-c", code, *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
 
@@ -273,6 +274,59 @@ def test_a_signal_records_what_was_paid_for_and_creates_nothing_more(server, tmp
     assert_complete(out, server, ids)
     for sample_id, pid in paid.items():
         assert examples(out)[sample_id]["prediction_id"] == pid
+
+
+@pytest.mark.timeout(60)
+def test_sigterm_while_the_creation_is_held_forever_stops_within_seconds_and_the_rerun_adopts(server, tmp_path):
+    # a creation's read timeout: 5 s + Prefer: wait's 60 s; requests in flight get 2 s after a signal (default 3)
+    config = write_config(tmp_path, stop_grace_s=2)
+    split, out = make_split(tmp_path / "eval", 1), tmp_path / "out"
+    server.hold_answers["apple"] = 3600  # Replicate made the prediction and never answers
+    proc = spawn(server, split, out, config)
+    wait_for(server.creation_recorded.is_set, what="the creation")
+    signalled = time.monotonic()
+    os.killpg(proc.pid, signal.SIGTERM)
+    code, _, err = finish(proc, timeout=40)
+    elapsed = time.monotonic() - signalled
+    assert 2 <= elapsed < 5, f"the run took {elapsed:.1f} s to stop"  # the grace, then at once
+    assert code == 130 and "Traceback" not in err, err
+    stored = state(out, "00000")
+    assert "prediction_id" not in stored and stored["intent"]["model"] == "google/veo-3.1"  # the intent is kept
+    entry = examples(out)["00000"]
+    assert entry["status"] == "interrupted" and "adopts it instead of paying again" in entry["error"], entry
+    assert "client.stop_grace_s" in entry["error"]
+    (paid,) = server.created
+    server.hold_answers.clear()
+    summary = run(split, out, config)
+    assert summary.written == ["00000"] and not summary.failed
+    assert server.created == [paid] and examples(out)["00000"]["adopted"] is True
+
+
+SUMMARY = re.compile(r"veo-3\.1: (\d+) predictions in \S+ \((\d+) already there\), (\d+) failed"
+                     r"(?:, (\d+) being made by another process)?")
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("wait", [False, True], ids=["skip", "wait"])
+def test_two_runs_on_one_folder_started_together_pay_once_for_each_example(server, tmp_path, wait):
+    """Two `predict` processes on one --out while every creation is held a second: each example is created
+    (paid) once, by one of them; the other skips it, saying so, or waits for it (--wait); nothing fails."""
+    config = write_config(tmp_path)
+    split, out = make_split(tmp_path / "eval", 3), tmp_path / "out"
+    ids = ["00000", "00001", "00002"]
+    server.hold_answers["apple"] = 1.0
+    procs = [spawn(server, split, out, config, concurrency=3, extra=["--wait"] if wait else []) for _ in range(2)]
+    made = 0
+    for proc in procs:
+        code, stdout, stderr = finish(proc, timeout=60)
+        assert code == 0 and "Traceback" not in stderr and "Errno" not in stderr + stdout, stderr
+        written, already, failed, elsewhere = (int(n or 0) for n in SUMMARY.search(stdout).groups())
+        assert failed == 0 and written + elsewhere == 3, stdout
+        assert elsewhere == 0 if wait else (elsewhere > 0) == ("by another process" in stderr), stdout + stderr
+        made += written - already
+    assert made == 3  # each example made by exactly one of the two
+    assert_complete(out, server, ids)  # one creation per example, every one recorded
+    assert not list((out / ".stages" / "predict").glob("staging/*"))
 
 
 def test_examples_finishing_out_of_order_keep_their_records_through_a_kill(server, tmp_path):

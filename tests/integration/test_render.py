@@ -111,6 +111,12 @@ def test_each_task_renders_a_valid_bundle(rendered, reg, task_rows):
         assert s.prompt and s.prompt == s.spec.prompt == (path / B.PROMPT_FILE).read_text().strip()
         assert s.sample_id == task_rows[task].sample_id and s.task == task
         assert not (path.parent / f".{path.name}.tmp").exists()
+        # every file of the bundle (the video too, whose encoder's temporary is private) has the umask's mode
+        mask = os.umask(0)
+        os.umask(mask)
+        modes = {f.relative_to(path).as_posix(): (f.stat().st_mode & 0o777, (0o777 if f.is_dir() else 0o666) & ~mask)
+                 for f in [path, *path.rglob("*")] if not f.is_symlink()}
+        assert {f: m for f, m in modes.items() if m[0] != m[1]} == {}, task
         # when the camera search found a view seeing half the sampled points, the actors are in view
         if s.spec.camera.visibility >= 0.5:
             assert any(s.masks[0, a].any() for a in s.active_indices), f"{task}: no active actor in view"

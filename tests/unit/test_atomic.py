@@ -5,7 +5,7 @@ import stat
 import numpy as np
 import pytest
 
-from rigidbench.atomic import atomic_dir, atomic_file, write_bytes, write_text
+from rigidbench.atomic import atomic_dir, atomic_file, current_umask, write_bytes, write_text
 
 
 def test_a_file_appears_complete_and_a_failed_write_leaves_nothing(tmp_path):
@@ -16,8 +16,8 @@ def test_a_file_appears_complete_and_a_failed_write_leaves_nothing(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("killed")
     assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
-    write_bytes(path, b"new", unique=True, mode=0o644)
-    assert path.read_bytes() == b"new" and stat.S_IMODE(path.stat().st_mode) == 0o644
+    write_bytes(path, b"new", unique=True)  # mkstemp's temporary is private; the file gets the umask's mode
+    assert path.read_bytes() == b"new" and stat.S_IMODE(path.stat().st_mode) == 0o666 & ~current_umask()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
 
 

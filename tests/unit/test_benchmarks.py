@@ -34,12 +34,23 @@ QUICK = {
                                "paired_difference_matrices_10_metrics_s", "correlation_s"]),
     "simulate.py": (["--quick"], ["mean_seconds_per_example", "max_seconds_per_example", "meets_target",
                                   "tasks.bounce.seconds_per_example", "tasks.bounce.cpu_seconds_per_example"]),
+    "inlp_procedures.py": (["--quick"], [f"cases.{c}.{p}.{f}" for c in ("redundant", "redundant_x100", "outliers")
+                                         for p in ("stable", "release", "release_float64")
+                                         for f in ("rank", "rounds", "train_r2", "heldout_r2_after_removal")]
+                           + ["cases.outliers.release.largest_angle_deg", "cases.outliers.release.first_round_apart"]),
     "storage.py": (["--quick"], [f"{k}.{f}" for k in ("h264_yuv420p_crf18", "h264_rgb_lossless", "release_jpeg_q95_444")
                                  for f in ("ssim", "max_abs_error", "psnr_db", "bytes")]),
     "generate.py": (["--quick"], ["hosted.overhead_per_call_s", "hosted.by_concurrency"]),
     "train.py": (["--quick"], ["cpu_tiny.lora.s_per_step", "cpu_tiny.lora.peak_rss_mib"]),
+    "wan_numerics.py": (["--quick"], ["seconds_ours"] + [f"vs_ours.{v}.{f}" for v in (
+        "timestep_dtype=bfloat16", "update_dtype=bfloat16", "vae_codec=diffsynth-tiled", "recipe=release")
+        for f in ("max_levels", "mean_levels", "fraction_differing")]),
     "perception.py": (["--quick"], ["device", "clip.frames", "models.lpips.seconds", "models.lpips.cpu_seconds",
                                     "models.lpips.params_m", "models.lpips.peak_gpu_mb"]),
+    "published_import.py": (["--quick"], ["source.bytes.total", "import.seconds", "import.cpu_seconds",
+                                          "import.bytes_added.total", "import.added_fraction", "import.frames.linked",
+                                          "digest.seconds", "frame_check.seconds", "rerun.seconds",
+                                          "after_deleting_source.bundle_ok"]),
     "assets_preview.py": (["--quick"], ["object_ms.apple.first_in_process", "object_ms_after_reset_mean"]),
     # renders two examples at the test preset with Blender (about 18 s on a 2-core CPU)
     "track_rule.py": (["--quick"], ["ids", "preset", "rules.rigidbench.points", "rules.published.visible_frac",
@@ -52,8 +63,8 @@ SKIPPED = {
     "render.py": "--quick still renders one example's 49 preview frames with Cycles: over a minute on a 2-core CPU",
     "scale.py": "starts Ray and renders with several executors: about 45 s even with --quick (one example)",
     "probe.py": "--quick still fits probes and INLP cells: about two minutes on a 2-core CPU",
-    "protocol_effect.py": "--quick renders an example with Blender and scores it under two protocols: 12 s on a "
-                          "2-core CPU, which with track_rule.py's 18 s would take this test past its ~60 s budget",
+    "protocol_effect.py": "--quick renders an example with Blender and scores two failure modes, five hostile "
+                          "cases and a BT.709 clip under three protocols: about 60 s on a 2-core CPU",
 }
 
 

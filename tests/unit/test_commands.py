@@ -24,12 +24,12 @@ def test_every_command_runs_a_function_that_exists_and_names_are_unique():
         assert callable(load_target(command.run, "command")), " ".join(path)
 
 
-def test_selection_options_read_back_the_same_in_every_stage():
+def test_selection_options_read_back_the_same_in_every_stage(tmp_path):
     parser = build_parser()
     for argv in (["evaluate", "preds", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"],
                  ["predict", "reference", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"],
-                 ["preprocess", "--data", "d", "--out", "c", "--ids", "00001,00003", "00007", "--limit", "2",
-                  "--shard", "1/2"],
+                 ["preprocess", "--data", str(tmp_path), "--out", "c", "--ids", "00001,00003", "00007", "--limit",
+                  "2", "--shard", "1/2"],  # (--data must be a folder that is there)
                  ["render", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"]):
         selection = selection_from(parser.parse_args(argv))
         assert selection.ids == ("00001", "00003", "00007") and selection.limit == 2, argv[0]

@@ -8,6 +8,7 @@ import io
 import json
 import logging
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -30,7 +31,8 @@ from rigidbench.folders import GENERATION_FILE  # noqa: E402
 from rigidbench.pipeline.predict import predict  # noqa: E402
 from rigidbench.predictors import PREDICTORS, SEED_RULE, Kind, PredictContext, example_seed  # noqa: E402
 from rigidbench.predictors.hosted import HostedPredictor, load_hosted_config, parse_models  # noqa: E402
-from rigidbench.predictors.replicate import CallStats, ClientSettings, Deadline, ReplicateClient  # noqa: E402
+from rigidbench.predictors.replicate import (CallStats, ClientSettings, Deadline, ReplicateClient,  # noqa: E402
+                                            StopRequested)
 from rigidbench.video import probe_video  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
@@ -355,6 +357,32 @@ def test_a_prediction_past_the_timeout_is_kept_and_waited_for_on_rerun(server, t
     server.never_finish = False
     again = run("veo-3.1", split, out, config)
     assert again.written == ["00000"] and len(server.creations()) == 1
+
+
+def test_a_stop_cuts_a_hung_download_after_its_grace_and_ends_a_pause_at_once(server, tmp_path):
+    """After the run's stop (SIGTERM, Ctrl-C) a request in flight gets ``stop_grace`` seconds, then is cut off
+    and not retried; a pause between polls ends at once, and no poll follows."""
+    slow = ClientSettings(request_timeout_s=30, poll_interval_s=30, poll_max_interval_s=30, max_retries=3)
+    client = ReplicateClient(slow, base_url=server.url, token=TOKEN)
+    done = client.create("google/veo-3.1", {"prompt": "a"}, Deadline(10), CallStats())
+    server.hang_downloads = True  # half the video, then the connection is held
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    started = time.monotonic()
+    with pytest.raises(StopRequested, match="the run is stopping"):
+        client.download(done["output"], tmp_path / "x.mp4", Deadline(60, stop=stop, stop_grace=0.5), CallStats())
+    assert 0.8 <= time.monotonic() - started < 3  # 0.3 s to the stop, its 0.5 s grace, then at once
+    assert len(server.requests_to("/output/")) == 1 and not list(tmp_path.iterdir())  # no retry, no partial file
+
+    server.wait_finishes, server.never_finish = False, True
+    running = client.create("google/veo-3.1", {"prompt": "b"}, Deadline(10), CallStats())
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    started = time.monotonic()
+    with pytest.raises(StopRequested):
+        client.wait(running, Deadline(60, stop=stop), CallStats())  # its first pause is 30 s
+    assert time.monotonic() - started < 2 and not server.requests_to(f"/v1/predictions/{running['id']}")
+    client.close()
 
 
 def test_an_output_deleted_by_replicate_is_paid_for_again_only_when_asked(server, config, tmp_path, caplog):

@@ -204,7 +204,7 @@ def test_function_level_imports_of_our_modules_are_heavy_only():
 # ``Benchmark``); importing it is free, since Python has run it before any module of the package.
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("base", ("errors", "atomic", "jsonio", "rotations", "argtypes", "registry", "folders")),
+    ("base", ("errors", "extras", "atomic", "jsonio", "rotations", "argtypes", "registry", "folders", "logsafe")),
     ("core", ("config", "context", "manifest", "spec", "video", "firstframe", "executors", "driver")),
     ("domain", ("rigidbench", "blender", "groundtruth", "benchmark", "datasets", "metrics", "readouts", "perception",
                 "predictors", "stats")),

@@ -4,7 +4,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from rigidbench.errors import RigidBenchError, UnknownNameError
+from rigidbench.errors import RigidBenchError, UnknownNameError, UserError
 from rigidbench.metrics import METRICS, MetricInfo
 from rigidbench.perception.base import BACKENDS
 from rigidbench.predictors import PREDICTORS, Kind, Predictor, PredictorInfo, predictor_info
@@ -98,7 +98,7 @@ def test_registering_a_metric_makes_it_loadable():
 
 def test_predictor_info_create_rejects_a_non_callable_target():
     info = PredictorInfo("pi", "math:pi", "not a predictor", Kind.PLUGIN)
-    with pytest.raises(TypeError, match="neither a Predictor class nor a function"):
+    with pytest.raises(UserError, match="neither a Predictor class nor a function"):
         info.create()
 
 

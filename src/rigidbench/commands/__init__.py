@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from ..argtypes import positive_int, selected_ids, split_ids
+from ..argtypes import IdList, positive_int, selected_ids, split_ids, writable
 from ..context import RunContext
-from ..driver import Selection
+from ..driver import Selection, wait_for_others
 from ..errors import UserError
 from ..executors import Shard, make_executor
 from ..registry import load_target
@@ -60,9 +60,14 @@ class Command:
 
 
 def lazy(target: str):
-    """A run function ``f(args, ctx)`` imported only when its command runs."""
+    """A run function ``f(args, ctx)`` imported only when its command runs; ``--wait`` (selection options) is
+    handed to the stage driver here, for every stage the command runs (and taken back after it)."""
     def run(args, ctx: RunContext):
-        return load_target(target, "command")(args, ctx)
+        wait_for_others(getattr(args, "wait", False))
+        try:
+            return load_target(target, "command")(args, ctx)
+        finally:
+            wait_for_others(False)
 
     return run
 
@@ -71,9 +76,13 @@ def lazy(target: str):
 
 
 def selection_options(p: argparse.ArgumentParser) -> None:
-    """--ids and --limit: which examples a stage runs."""
-    p.add_argument("--ids", nargs="+", metavar="ID", help="sample ids, e.g. 00000 00007 or 00000,00007 (default: all)")
+    """--ids and --limit: which examples a stage runs; --wait: what it does with those another process is making."""
+    p.add_argument("--ids", nargs="+", action=IdList, metavar="ID",
+                   help="sample ids, e.g. 00000 00007 or 00000,00007 (default: all)")
     p.add_argument("--limit", type=positive_int, help="only the first N selected examples")
+    p.add_argument("--wait", action="store_true",
+                   help="wait for the examples another process is making in the same output folder (default: "
+                        "skip them and say so)")
 
 
 def manifest_options(p: argparse.ArgumentParser) -> None:
@@ -159,11 +168,19 @@ def split_dir(args) -> Path:
     naming `rigidbench import` when ``--data`` is in the published archive's own layout."""
     from ..groundtruth.bundle import resolve_split_dir  # numpy: not needed for --help
 
+    data = Path(args.data)
+    if data.exists() and not data.is_dir():
+        raise UserError(f"--data {data}: is a file, not a folder; pass the folder of reference bundles (a split "
+                        "directory such as data/eval, or a data root such as data)")
     return resolve_split_dir(args.data, getattr(args, "split", None))
 
 
-def output_dir(path: Path, option: str = "--out") -> Path:
-    """A directory to write into: UserError when ``path`` is an existing file (not a folder)."""
+def output_dir(path: Path, option: str = "--out", *, dry_run: bool = False) -> Path:
+    """A directory to write into: UserError when ``path`` is an existing file (not a folder) or nothing can be
+    written there (``argtypes.where_to_write``: read-only, not writable, a file above it); ``dry_run``: only
+    the first (nothing will be written)."""
+    if not dry_run:
+        return writable(path, option)
     if path.exists() and not path.is_dir():
         raise UserError(f"{option} {path}: is a file, not a folder; pass a folder for the outputs")
     return path

@@ -6,14 +6,18 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..argtypes import positive_int
+from ..argtypes import IdList, output_file, output_folder, positive_int, writable
 from ..context import RunContext
 from ..errors import UserError
-from . import DEFAULT_DATA, Command, selected_ids, split_dir
+from . import DEFAULT_DATA, Command, output_dir, selected_ids, split_dir
 
 
 def _published_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data root (default: data); bundles go to DATA/eval")
+    p.add_argument("--data", type=output_folder, default=DEFAULT_DATA,
+                   help="data root (default: data); bundles go to DATA/eval")
+    p.add_argument("--replace", action="store_true",
+                   help="delete the examples in DATA/eval that come from another source (another set or release, "
+                        "rendered bundles) instead of refusing to mix them with this one")
 
 
 def _download_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,26 +30,27 @@ def _download_arguments(p: argparse.ArgumentParser) -> None:
 def _import_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("src", type=Path, help="the archive (.tar.gz), or the folder it was extracted into")
     _published_arguments(p)
-    p.add_argument("--dataset", help="which published set this is, for the record (default: the newest described)")
+    p.add_argument("--dataset", help="which published set this is: an archive is checked against its MD5, and the "
+                                     "bundles record it (default: the newest described)")
 
 
 def _manifest_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", choices=("train", "eval"), required=True)
-    p.add_argument("--out", type=Path, help="output file (default manifests/<split>.jsonl)")
+    p.add_argument("--out", type=output_file, help="output file (default manifests/<split>.jsonl)")
 
 
 def cmd_manifest(args, ctx: RunContext) -> int:
     from .. import manifest
 
+    out = writable(args.out or Path("manifests") / f"{args.split}.jsonl", kind="file")
     rows = manifest.rows(args.split, ctx.registry)
-    out = args.out or Path("manifests") / f"{args.split}.jsonl"
     manifest.write(out, rows)
     print(f"wrote {len(rows)} {args.split} rows to {out}")
     return 0
 
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, help="output directory (default data/<split>)")
+    p.add_argument("--out", type=output_folder, help="output directory (default data/<split>)")
 
 
 def manifest_rows(args, ctx: RunContext):
@@ -61,8 +66,8 @@ def manifest_rows(args, ctx: RunContext):
 def cmd_simulate(args, ctx: RunContext) -> int:
     from ..pipeline.simulate import simulate_rows
 
+    out = output_dir(args.out or DEFAULT_DATA / args.split)
     rows = manifest_rows(args, ctx)
-    out = args.out or DEFAULT_DATA / args.split
     failures, skipped = simulate_rows(rows, ctx.registry, Path(out), config_dirs=ctx.config_dirs)
     print(f"simulated {len(rows) - len(failures) - len(skipped)} of {len(rows)} examples into {out} "
           f"({len(skipped)} already done)")
@@ -81,7 +86,7 @@ def _render_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _show_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("ids", nargs="+", metavar="ID", help="sample id(s), e.g. 00000 00007")
+    p.add_argument("ids", nargs="+", action=IdList, metavar="ID", help="sample id(s), e.g. 00000 00007")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA,
                    help="reference bundles: a split directory (data/eval) or a data root (data) with --split "
                         "(default: data)")
@@ -92,7 +97,9 @@ def _show_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _inputs_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, help="output file (default <split directory>/inputs.jsonl)")
+    p.add_argument("--out", type=output_file,
+                   help="output file (default DATA/inputs.jsonl beside DATA/eval, where `download` and `import` "
+                        "write it; DIR/inputs.jsonl for a split directory DIR not named eval)")
 
 
 def cmd_inputs(args, ctx: RunContext) -> int:
@@ -108,7 +115,7 @@ def cmd_inputs(args, ctx: RunContext) -> int:
 
 COMMANDS = (
     Command("download", "the paper's published evaluation set: download (resumable), verify, extract and import "
-                        "into DATA/eval (about 40 GB of free disk while it runs)",
+                        "into DATA/eval (about 37 GB of free disk while it runs)",
             "rigidbench.datasets.commands:cmd_download", _download_arguments),
     Command("import", "import a published evaluation set you downloaded by hand (the .tar.gz, its parts' folder, "
                       "or the extracted folder) into DATA/eval",

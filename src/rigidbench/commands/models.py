@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..argtypes import IdList, positive_int
 from ..context import RunContext
 from ..errors import RigidBenchError, UserError
 from . import Command, executor_from, output_dir, selected_ids, split_dir, split_ids
@@ -63,7 +64,8 @@ def cmd_predict(args, ctx: RunContext) -> int:
     if not args.name:
         raise UserError("name a predictor (rigidbench predict --list shows them)")
     info = predictor_info(args.name)
-    out = output_dir(args.out or Path("predictions") / info.name)
+    ctx.registry  # a bad configuration file: one error now, not one failure per example
+    out = output_dir(args.out or Path("predictions") / info.name, dry_run=args.dry_run)
     executor, shard = executor_from(args)
     summary = predict(args.name, split_dir(args), out, predict_context(args, ctx, [args.name]), selected_ids(args),
                       args.limit, dry_run=args.dry_run, executor=executor, shard=shard)
@@ -72,27 +74,30 @@ def cmd_predict(args, ctx: RunContext) -> int:
               f"{summary.paid_calls} paid API calls; nothing was sent")
         return 0
     print(f"{info.name}: {len(summary.written)} predictions in {out} "
-          f"({len(summary.skipped)} already there), {len(summary.failed)} failed")
+          f"({len(summary.skipped)} already there), {len(summary.failed)} failed"
+          + (f", {len(summary.elsewhere)} being made by another process" if summary.elsewhere else ""))
     for sample_id, reason in summary.failed.items():
         print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
     return 1 if summary.failed else 0
 
 
 def _audit_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--models", nargs="+", required=True, metavar="NAME",
+    p.add_argument("--models", nargs="+", action=IdList, required=True, metavar="NAME",
                    help="comma- or space-separated predictor names, e.g. wan-2.2,veo-3.1")
     p.add_argument("--out", type=Path, default=Path("audit"), help="output directory (default audit/)")
     p.add_argument("--perception", choices=("gt", "neural"), default="neural",
                    help="neural for video models (default); gt only for predictors that write world state")
     p.add_argument("--depth-model", choices=("vda", "dav2"), default="vda")
     p.add_argument("--yes", action="store_true", help="make the paid API calls the audit counted")
-    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples in the report")
+    p.add_argument("--resamples", type=positive_int, default=20000, help="bootstrap resamples in the report")
 
 
 def cmd_audit(args, ctx: RunContext) -> int:
     from ..pipeline.audit import audit
 
     models = split_ids(args.models)
+    output_dir(args.out)
+    ctx.registry  # a bad configuration file: one error now, not one failure per example and model
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
     summary = audit(models, split_dir(args), args.out, predict_context(args, ctx, models), yes=args.yes,
                     perception=args.perception, perception_options=options, ids=selected_ids(args), limit=args.limit,

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..argtypes import IdList, input_folder, int_at_least, non_negative_int, positive_int
 from ..context import RunContext
 from . import Command, executor_from, output_dir, selected_ids, split_dir, split_ids
 
@@ -17,6 +18,7 @@ def _validate_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_validate(args, ctx: RunContext) -> int:
     from ..validate import main as validate_main
 
+    input_folder(args.predictions, "predictions", "the folder of <id>.mp4 files")
     return validate_main(args.predictions, split_dir(args))
 
 
@@ -33,8 +35,9 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", help="model name in the results (default: the predictions directory name)")
     p.add_argument("--protocol", default=None, metavar="NAME",
                    help="evaluation protocol (default rigidbench-v1): rigidbench-v1: the published evaluator's rules, "
-                        "comparable with the paper (generated frames go through JPEG q95 4:4:4 after resizing); "
-                        "lossless: no JPEG round trip (docs/metrics.md)")
+                        "comparable with the paper (OpenCV decoding, JPEG q95 4:4:4 after resizing, the release's "
+                        "edge rules in the metrics); paper-rules: the same JPEG round trip with PyAV decoding and "
+                        "our edge rules; lossless: paper-rules without the JPEG round trip (docs/metrics.md)")
     p.add_argument("--no-first-frame-check", action="store_true",
                    help="score predictions whose first frame is not their reference's (normally refused as made from "
                         "another set's inputs); recorded in results.json")
@@ -46,6 +49,7 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_evaluate(args, ctx: RunContext) -> int:
     from ..evaluation import evaluate
 
+    input_folder(args.predictions, "predictions", "the folder of <id>.mp4 files")
     out = output_dir(args.out or Path("runs") / args.predictions.name)
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
     executor, shard = executor_from(args)
@@ -58,7 +62,9 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
     print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
           f"{summary.results['protocol']['name']}")
     print(f"{summary.results['model']}: {len(summary.evaluated)} evaluated, {len(summary.reused)} unchanged "
-          f"(reused), {len(summary.failed)} failed -> {out}")
+          f"(reused), {len(summary.failed)} failed"
+          + (f", {len(summary.elsewhere)} being evaluated by another process" if summary.elsewhere else "")
+          + f" -> {out}")
     for name, stats in overall.items():
         mean = "n/a" if stats["mean"] is None else f"{stats['mean']:.4f}"
         print(f"  {name:12s} {mean:>10s}  (finite {stats['finite']}/{stats['n']})")
@@ -75,9 +81,10 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", type=Path, help="run directories (runs/*)")
     p.add_argument("--out", type=Path, default=Path("report"), help="output directory (default report/)")
     p.add_argument("--baseline", help="model for paired changes (default: first run not named 'reference')")
-    p.add_argument("--resamples", type=int, default=20000, help="bootstrap resamples (default 20000)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--examples", type=int, default=3, help="examples shown as filmstrips (default 3; 0: none)")
+    p.add_argument("--resamples", type=positive_int, default=20000, help="bootstrap resamples (default 20000)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--examples", type=non_negative_int, default=3,
+                   help="examples shown as filmstrips (default 3; 0: none)")
     p.add_argument("--no-clips", action="store_true", help="no looping video clips beside the filmstrips")
     p.add_argument("--outlines", choices=("reference", "perceived"), default="reference",
                    help="object outlines drawn on the filmstrips: the reference masks, or each run's perceived masks")
@@ -92,9 +99,9 @@ def _readouts_arguments(p: argparse.ArgumentParser) -> None:
 
 def _validate_metrics_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("validation"), help="output directory (default validation/)")
-    p.add_argument("--examples", type=int, default=10, help="reference examples to perturb (default 10)")
-    p.add_argument("--severities", type=int, default=6, help="levels per sweep, >= 2")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--examples", type=positive_int, default=10, help="reference examples to perturb (default 10)")
+    p.add_argument("--severities", type=int_at_least(2), default=6, help="levels per sweep, >= 2")
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--with-rendered", action="store_true",
                    help="also use the failure modes that re-render with Blender (depth-offset, identity-swap; slow)")
 
@@ -113,7 +120,8 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--severity", type=float, default=0.5, help="severity of every failure mode, in [0, 1]")
     p.add_argument("--perception", choices=("gt", "neural"), default="gt",
                    help="gt: exact world state (no networks); neural: SAM 2.1, CoTracker3, Video Depth Anything")
-    p.add_argument("--modes", nargs="+", metavar="NAME", help="built-in predictors to run (default: a set of "
+    p.add_argument("--modes", nargs="+", action=IdList, metavar="NAME",
+                   help="built-in predictors to run (default: a set of "
                    "image-space failure modes plus gravity)")
     p.add_argument("--no-report", action="store_true", help="skip the report (tables, figures, report.html)")
 
@@ -121,6 +129,7 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_demo(args, ctx: RunContext) -> int:
     from ..pipeline.demo import run_demo
 
+    output_dir(args.out)
     modes = split_ids(args.modes) or None
     kwargs = {"modes": modes} if modes else {}
     return run_demo(args.out, quality=args.quality, severity=args.severity, perception=args.perception,

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..argtypes import positive_int
+from ..argtypes import existing_folder, output_folder, positive_int
 from ..train.config import MODEL_SPECS, NAMED_CONFIGS, RESIZES, VAE_DTYPES
 from . import Command
 
 
 def _preprocess_arguments(p) -> None:
-    p.add_argument("--data", type=Path, required=True,
+    p.add_argument("--data", type=existing_folder, required=True,
                    help="reference bundles: the training split directory (data/train) or a data root")
     p.add_argument("--split", choices=("train", "eval"), default="train",
                    help="split under a data root (default: train)")
-    p.add_argument("--out", type=Path, required=True, help="cache directory (created; a rerun skips done clips)")
+    p.add_argument("--out", type=output_folder, required=True,
+                   help="cache directory (created; a rerun skips done clips)")
     p.add_argument("--model", choices=tuple(MODEL_SPECS), default="wan-2.2",
                    help="wan-2.2 (640x352, 49 frames; the paper) or tiny (random tiny models, CPU tests)")
     p.add_argument("--model-path", type=Path, help="a local diffusers pipeline directory instead of the hub")
@@ -34,8 +35,8 @@ def _train_arguments(p) -> None:
                    help=f"{'|'.join(NAMED_CONFIGS)} (configs/train/NAME.yaml) or a YAML file")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one setting, e.g. --set max_steps=100 --set optimizer.lr=5e-5 (repeatable)")
-    p.add_argument("--cache", type=Path, required=True, help="the directory `rigidbench preprocess` wrote")
-    p.add_argument("--out", type=Path, required=True,
+    p.add_argument("--cache", type=existing_folder, required=True, help="the directory `rigidbench preprocess` wrote")
+    p.add_argument("--out", type=output_folder, required=True,
                    help="run directory: metrics.jsonl, checkpoints/step-N; rerunning continues from the last")
     p.add_argument("--device", dest="net_device", help="e.g. cuda or cpu (default: CUDA when available)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

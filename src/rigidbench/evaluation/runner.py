@@ -12,23 +12,24 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, run_stage
+from ..driver import (ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, ledger_outcomes,
+                      run_stage)
 from ..errors import EXAMPLE_ERRORS, EvaluationError
 from ..executors import Executor, LocalExecutor, Resources, Shard
-from ..firstframe import check_first_frame, mismatch_message
+from ..firstframe import compare_first_frames, mismatch_message
 from ..folders import RunFolder, find_prediction, state_path
-from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity
+from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity, unverified_reason
 from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
 from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
-from ..video import align_video, aligned_length, read_video, reference_times, resize_frames
-from ..readouts.records import aggregate_readouts, example_readouts
+from ..video import align_video, aligned_length, reference_times, resize_frames
+from ..readouts.records import aggregate_readouts, example_readouts, read_example_readouts, record_problem
 from .aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
 from ..jsonio import read_json
 from .cache import file_hash, input_key, reference_hash, write_json
@@ -43,8 +44,8 @@ log = logging.getLogger(__name__)
 class EvaluationSummary:
     """What ``evaluate`` did: ``evaluated`` (scored now, sorted), ``reused`` (unchanged records kept),
     ``failed`` (id -> reason, in selection order), the skipped measurements, whether the run is official,
-    results.json's content, and the stage driver's report (``stage.redone``: why each earlier record was
-    not reused)."""
+    results.json's content, the stage driver's report (``stage.redone``: why each earlier record was
+    not reused) and the examples another process was scoring meanwhile (``elsewhere``, not waited for)."""
 
     out_dir: Path
     evaluated: list[str]
@@ -54,6 +55,7 @@ class EvaluationSummary:
     official: bool
     results: dict
     stage: StageReport | None = None
+    elsewhere: list[str] = field(default_factory=list)  # being scored by another process on the same folder
 
 
 def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
@@ -76,7 +78,8 @@ def refusal(facts: dict, pred: Path, ref_dir: Path, first_frame_check: bool, all
             metadata = Sample(ref_dir).metadata
         except EXAMPLE_ERRORS:
             metadata = {}
-        return mismatch_message(pred, ref_dir.name, ref_dir.parent, metadata, float(first.get("correlation", 0.0)))
+        return mismatch_message(pred, ref_dir.name, ref_dir.parent, metadata, float(first.get("correlation", 0.0)),
+                                first.get("orientation"), first.get("turned_correlation"))
     coverage = facts.get("coverage") or {}
     if coverage.get("short") and not allow_short:
         return short_clip_message(pred, coverage, float(coverage.get("fps", 24.0)))
@@ -148,10 +151,13 @@ def evaluation_resources(perception: str, device: str | None) -> Resources:
 
 
 def read_record(path: Path) -> dict | None:
-    """The score record at ``path``, or None when there is none or it is damaged (a truncated or foreign file
-    is not an error: the example is simply scored again and the file replaced)."""
-    doc = read_json(path, "scoring this example again")
-    return doc if isinstance(doc, dict) else None
+    """The score record at ``path``, or None when there is none or it is damaged (a truncated or foreign file,
+    a field of another type: not an error, the example is simply scored again and the file replaced)."""
+    doc = read_json(path, "scoring this example again", expect=dict)
+    problem = None if doc is None else record_problem(doc)
+    if problem is not None:
+        log.warning("%s: %s; scoring this example again", path, problem)
+    return doc if problem is None else None
 
 
 class EvaluateStage(Stage):
@@ -204,14 +210,19 @@ class EvaluateStage(Stage):
         pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")  # both checked regular
         ref_key = reference_hash(self.data_dir / item_id)
         key = input_key(pred_key, ref_key, f"{self.backend.name}:{self.backend.version}", self.nets_key,
-                        self.metrics, f"protocol={self.rules.name}")
+                        self.metrics, f"protocol={self.rules.key()}")
         self.pred_hashes[item_id], self.ref_hashes[item_id] = pred_key, ref_key
         self.input_keys[item_id], self.predictions[item_id] = key, pred
         payload["input_key"] = key
         return digest(key, {"first_frame_check": self.first_frame_check, "allow_short": self.allow_short})
 
     def intact(self, item_id: str) -> bool:
-        """The record is readable and was scored from these inputs (its ``input_key``)."""
+        """Every output the worker listed (the .npz, the .readouts.json and the record) is still there as it was
+        committed (the driver's check), the readouts file still reads as one, and the record was scored from
+        these inputs (its ``input_key``)."""
+        if not super().intact(item_id) or read_example_readouts(self.folder.readouts(item_id),
+                                                                "the example is scored again") is None:
+            return False
         record = read_record(self.folder.record(item_id))
         return record is not None and record.get("input_key") == self.input_keys.get(item_id)
 
@@ -240,38 +251,46 @@ class EvaluateStage(Stage):
         self.folder.cache_dir.mkdir(parents=True, exist_ok=True)
 
     def finish(self, report: StageReport) -> None:
-        """results.json and run.json from the records of every selected example scored now or earlier; nothing
-        when the run did not complete (an interrupt or a bug: the rerun writes them)."""
+        """results.json and run.json from the records of every selected example scored now or earlier, by this
+        process or another on the same folder (the ledger: ``driver.ledger_outcomes``; a failure counts while
+        it is the example's latest entry); nothing when the run did not complete (an interrupt or a bug: the
+        rerun writes them). The driver runs this under the run-level lock, so of processes finishing at once
+        the last writes results.json from everything done by then."""
         if not report.completed:
             return
         self.folder.examples_dir.mkdir(parents=True, exist_ok=True)
         self.folder.cache_dir.mkdir(exist_ok=True)
+        done, failed = ledger_outcomes(self, report)
         records = []
-        for sample_id in report.succeeded:
+        for sample_id, entry in done.items():
             record = read_record(self.folder.record(sample_id))
-            records.append(record if record is not None else report.results[sample_id]["record"])
+            records.append(record if record is not None else entry["result"]["record"])
         records.sort(key=lambda r: r["id"])
-        failed = {i: report.failed[i] for i in report.selected if i in report.failed}
         complete_ids = {r["id"] for r in records}
         missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
         coverage = coverage_summary(records)
+        refs = [self.data_dir / i for i in report.selected]
+        dataset = set_identity(refs)
+        unverified = unverified_reason(dataset)  # a published set whose MD5 nobody checked is never official
         official = (len(self.all_ids) == EVAL_SIZE and len(report.selected) == len(self.all_ids)
                     and complete_ids == set(self.all_ids) and not failed and not missing_metrics
-                    and not coverage["short"])
+                    and not coverage["short"] and unverified is None)
         self.skipped = {m: _skip_reason(records, m, self.nets) for m in missing_metrics}
-        refs = [self.data_dir / i for i in report.selected]
         results = {"model": self.model, "perception": self.backend.name,
                    "protocol": {**self.rules.facts(), "first_frame_check": self.first_frame_check,
                                 "allow_short": self.allow_short},
-                   "dataset": set_identity(refs), "official": official, "metrics": list(self.metrics),
+                   "dataset": dataset, "official": official, "metrics": list(self.metrics),
                    "n_examples": len(records), "n_reference": len(self.all_ids), "failed": failed,
                    "skipped_metrics": self.skipped, "coverage": coverage, **aggregate(records, self.metrics),
                    "readouts": aggregate_readouts(records, self.root)}
+        notes = {r["id"]: r["notes"] for r in records if r.get("notes")}
+        if notes:  # values the protocol's rules leave undefined, with the reason (e.g. the release would stop)
+            results["notes"] = notes
         if self.shard.count > 1:
             results["shard"] = str(self.shard)
         if not official:
             results["why_not_official"] = why_not_official(self.all_ids, complete_ids, failed, missing_metrics,
-                                                           coverage["short"])
+                                                           coverage["short"]) + ([unverified] if unverified else [])
         write_json(self.folder.results, results)
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
         for sample_id in report.ran:
@@ -288,7 +307,7 @@ class EvaluateStage(Stage):
         """The run as ``evaluate`` returns it (after ``finish``)."""
         failed = {i: report.failed[i] for i in report.selected if i in report.failed}
         return EvaluationSummary(self.root, sorted(report.ran), list(report.reused), failed, self.skipped,
-                                 bool(self.results["official"]), self.results, report)
+                                 bool(self.results["official"]), self.results, report, list(report.elsewhere))
 
 
 def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> str:
@@ -357,12 +376,11 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     ref_times = reference_times(sample.n_frames, sample.fps)
     # Decode only up to the last reference time unless the backend needs every generated frame (neural:
     # CoTracker3 offline and VDA see the whole clip, as in the published runs).
-    video = read_video(pred, until_s=None if getattr(backend, "whole_clip", True) else float(ref_times[-1]))
+    video = protocol.decode(pred, until_s=None if getattr(backend, "whole_clip", True) else float(ref_times[-1]))
     w, h = sample.resolution
     if video.size != (w, h):
         video.frames = resize_frames(video.frames, (w, h))
-    matches, correlation = check_first_frame(video.frames[0], sample.frame(0))
-    facts = {"first_frame": {"correlation": round(correlation, 4), "matches": bool(matches)},
+    facts = {"first_frame": compare_first_frames(video.frames[0], sample.frame(0)).facts(),
              "coverage": clip_coverage(video.times_s, ref_times, sample.fps)}
     why = refusal(facts, pred, sample.path, first_frame_check, allow_short)
     if why is not None:  # another set's inputs, or short of the span: refused rather than scored
@@ -386,7 +404,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     aligned = perceived.aligned(ref_times)
     gen_rgb = align_video(video, ref_times)
     t0 = time.time()
-    inputs = metric_inputs(sample, gen_rgb, aligned, nets)  # one adapter for the metrics and the readouts
+    inputs = metric_inputs(sample, gen_rgb, aligned, nets, edge_rules=protocol.edge_rules)  # metrics and readouts
     scores = score_inputs(inputs)
     timings["metrics_s"] += time.time() - t0
     record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
@@ -394,7 +412,8 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
               "frames_compared": int(gen_rgb.shape[0]), **facts, "input_key": key,
               "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
-              "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None}}
+              "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None},
+              "notes": {m: r.note for m, r in scores.items() if r is not None and r.note}}
     out = RunFolder(staging)
     out.examples_dir.mkdir(parents=True, exist_ok=True)
     record["readouts"] = example_readouts(sample, inputs, scores, staging)

@@ -27,11 +27,14 @@ records a killed run left only there, and rebuilds the record of a finished vide
 predictor's own state, e.g. a hosted prediction's id, else from the seed and prompts).
 
 Hosted runs in this process stop gracefully on SIGTERM or Ctrl-C: no new example starts and no new
-prediction is created, requests already sent are answered and recorded, outputs already paid for are
-downloaded; then the run ends as interrupted (a second signal ends it at once; the records on disk and
-the predictor's resume state let the rerun go on without paying twice). What an interrupted example left
-in the driver's staging folder is removed when it runs again, and so is a partial video that a run of an
-earlier version of this stage left in ``OUT/`` itself (``remove_temporaries``).
+prediction is created; requests already sent get a few seconds (the client's ``stop_grace_s``, 3 s) to be
+answered and recorded, and outputs already paid for to be downloaded, then they are cut off (a creation cut
+off keeps its recorded intent, so the rerun adopts its prediction); then the run ends as interrupted (a
+second signal ends it at once; the records on disk and the predictor's resume state let the rerun go on
+without paying twice). Two runs on one folder never make the same example at once (the driver's lock per
+example): the second skips what the first is making and says so, or waits for it with ``--wait``. What an
+interrupted example left in the driver's staging folder is removed when it runs again, and so is a partial
+video that a run of an earlier version of this stage left in ``OUT/`` itself (``remove_temporaries``).
 """
 
 from __future__ import annotations
@@ -69,7 +72,6 @@ from ..video import write_video
 
 log = logging.getLogger(__name__)
 
-FILE_MODE = 0o644  # videos get the permissions of the JSON files beside them (jsonio)
 INTERRUPTED = "interrupted"  # a record's status when the run stopped before the example was done
 VERSION_PACKAGES = ("diffusers", "transformers", "peft", "httpx")
 STAGE = "predict"  # the driver's name for it: ledger entries in OUT/.stages/predict/
@@ -84,6 +86,7 @@ class PredictSummary:
     planned: list[str] = field(default_factory=list)  # --dry-run: what would be generated
     paid_calls: int = 0  # --dry-run: paid API calls the run would make
     redone: dict[str, str] = field(default_factory=dict)  # made before and made again now: why
+    elsewhere: list[str] = field(default_factory=list)  # being made by another process in the same folder
 
 
 def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps: float | None = None) -> None:
@@ -98,13 +101,13 @@ def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps:
         source = Path(pred.video_path)
         video = PredictionsFolder(out_dir).video(sample_id, source.suffix.lower() or ".mp4")
         # hidden: validate and evaluate ignore it; remove_temporaries finds it by name
-        with atomic_file(video, tmp=out_dir / f".{sample_id}.partial{video.suffix}", mode=FILE_MODE) as tmp_video:
+        with atomic_file(video, tmp=out_dir / f".{sample_id}.partial{video.suffix}") as tmp_video:
             shutil.copyfile(source, tmp_video)
         return
     if pred.frames is None:
         raise TypeError(f"example {sample_id}: a Prediction needs frames or a video_path")
     video = PredictionsFolder(out_dir).video(sample_id)
-    with atomic_file(video, tmp=out_dir / f".{sample_id}.partial.mp4", mode=FILE_MODE) as tmp_video:
+    with atomic_file(video, tmp=out_dir / f".{sample_id}.partial.mp4") as tmp_video:
         write_video(tmp_video, pred.frames, fps=fps if fps is not None else pred.fps, lossless=pred.lossless)
 
 
@@ -318,6 +321,7 @@ class PredictStage(Stage):
             if report.interrupted:  # stopped before any example ran: nothing to record
                 return
             self._open_log()
+        self.log.merge()  # first: another process's records of examples it finished (reused here) are no loss
         self.log.repair(report.reused, self.rebuild)
         for sample_id, reason in report.failed.items():  # failed before it ran (e.g. its inputs are unreadable)
             if sample_id not in self.recorded:
@@ -408,7 +412,7 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
                         "twice", stopper.signal_name, len(report.ran), len(report.failed), len(report.interrupted))
             raise KeyboardInterrupt(stopper.signal_name)
         return PredictSummary(written=report.succeeded, skipped=list(report.reused), failed=dict(report.failed),
-                              redone=dict(report.redone))
+                              redone=dict(report.redone), elsewhere=list(report.elsewhere))
     finally:
         if worker is not None:
             worker.close()  # (the executor has closed it when examples ran)
@@ -427,7 +431,12 @@ def _dry_run(stage: PredictStage, predictor: Predictor, ctx: PredictContext) -> 
     summary = PredictSummary(skipped=list(report.reused), failed=dict(report.failed), redone=dict(report.redone))
     for task in todo:
         sample_id = task["id"]
-        request = predictor.describe(Sample(stage.split_dir / sample_id), example_context(ctx, sample_id))
+        try:  # a damaged bundle fails its example, as in a run (plan() reports one whose key fails the same way)
+            request = predictor.describe(Sample(stage.split_dir / sample_id), example_context(ctx, sample_id))
+        except EXAMPLE_ERRORS as exc:
+            summary.failed[sample_id] = str(exc)
+            log.warning("%s: example %s failed: %s", stage.name, sample_id, exc)
+            continue
         print(f"{sample_id}: {json.dumps(request, sort_keys=True)}")
         summary.planned.append(sample_id)
     summary.paid_calls = len(summary.planned) if predictor.paid else 0
@@ -457,6 +466,9 @@ class PredictWorker(StageWorker):
         request_stop = getattr(self.predictor, "request_stop", None)
         if request_stop is not None:
             request_stop()
+
+    def stopped(self) -> bool:
+        return self.stopping.is_set()
 
     def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
         """Outputs: ``<id>.state.npz`` (when the prediction has one), ``<id>.<ext>``, ``.generation/<id>.json``."""
@@ -512,8 +524,9 @@ class PredictWorker(StageWorker):
 
 
 class _GracefulStop:
-    """SIGTERM and SIGINT handlers for a hosted run in this process: the first signal stops new work and lets
-    what was already sent (and paid for) be answered and recorded; a second one ends the process at once
+    """SIGTERM and SIGINT handlers for a hosted run in this process: the first signal stops new work and gives
+    what was already sent (and paid for) a few seconds to be answered and recorded (``Deadline.cut``); a
+    second one ends the process at once
     (the resume state on disk makes that safe). Installed only from the main thread."""
 
     SIGNALS = ("SIGINT", "SIGTERM")
@@ -545,8 +558,9 @@ class _GracefulStop:
             os._exit(128 + signum)
         self.signal_name = name
         self.worker.stop()
-        sys.stderr.write(f"rigidbench predict: {name}: no new predictions are created; waiting for the requests in "
-                         "flight and recording what was paid for (send it again to stop at once)\n")
+        sys.stderr.write(f"rigidbench predict: {name}: no new predictions are created; requests in flight get a "
+                         "few seconds to be answered, and what was paid for is recorded (send it again to stop at "
+                         "once)\n")
         sys.stderr.flush()
 
 

@@ -36,12 +36,13 @@ from .. import manifest
 from ..blender.render import render_spec
 from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, registry as load_registry
-from ..argtypes import selected_ids, split_ids
+from ..argtypes import selected_ids, split_ids, writable
 from ..context import RunContext
 from ..driver import (ItemResult, Progress, Selection, Stage, StageReport, StageWorker, digest, file_digest, plan,
                       run_stage)
 from ..errors import EXAMPLE_ERRORS, SpecError, UserError
 from ..executors import Executor, ProcessExecutor, RayExecutor, Resources
+from ..extras import missing
 from ..groundtruth import bundle as B
 from ..groundtruth.contact_sheet import write_contact_sheet
 from ..manifest import ManifestRow
@@ -339,12 +340,10 @@ def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
     selection.apply([r.sample_id for r in candidates], f"the {args.split} manifest")  # unknown ids: fail first
     if args.quality not in reg.presets:
         raise UserError(f"unknown quality '{args.quality}'; presets: {', '.join(reg.presets)}")
-    if not bpy_available():
-        raise UserError("rendering needs Blender as a Python module (bpy 4.5, Python 3.11); "
-                        "install it with `pip install -e '.[sim]'`")
     data = Path(args.data)
-    if data.exists() and not data.is_dir():
-        raise UserError(f"--data {data}: is a file, not a folder; pass the data folder to render into")
+    writable(data, "--data")
+    if not bpy_available():
+        raise missing("bpy", "rendering (Blender as a Python module, bpy 4.5 on Python 3.11)")
     if B.bundle_dirs(data):
         raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
                         f"DATA/<split>/; did you mean --data {data.parent}?")
@@ -378,6 +377,9 @@ def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
     ids = split_ids(args.ids)
     if args.out is not None and len(ids) > 1 and Path(args.out).suffix.lower() == ".png":
         raise UserError(f"--out {args.out}: several examples need a folder for their sheets, not one PNG file")
+    if args.out is not None:
+        one_file = len(ids) == 1 and Path(args.out).suffix.lower() == ".png"
+        writable(args.out, kind="file" if one_file else "folder")
     failed: dict[str, str] = {}
     for sample_id in ids:
         path = split_dir / sample_id

@@ -35,6 +35,7 @@ import numpy as np
 
 from ..benchmark import NEGATIVE_PROMPT, full_prompt
 from ..context import RunContext
+from ..errors import UserError
 from ..folders import SCRATCH_DIR, PredictionsFolder  # noqa: F401 (SCRATCH_DIR re-exported)
 from ..perception.gt import WorldState
 from ..registry import load_target
@@ -148,7 +149,9 @@ class PredictorInfo:
         if isinstance(obj, type) and issubclass(obj, Predictor):
             return obj(self)
         if not callable(obj):
-            raise TypeError(f"predictor '{self.name}': {self.target} is neither a Predictor class nor a function")
+            raise UserError(f"predictor '{self.name}': {self.target} is neither a Predictor class nor a function; "
+                            "name one, e.g. mypackage.module:MyModel (a Predictor subclass or a function "
+                            "f(sample, ctx) -> Prediction)")
         if self.kind == Kind.FAILURE_MODE:
             return FailureMode(self, obj)
         return FunctionPredictor(self, obj)

@@ -29,8 +29,10 @@ output Replicate has already deleted (after about an hour) fails the example wit
 also keeps its generation record, from which the predict stage rebuilds a record that was lost.
 
 Stopping (``request_stop``, on SIGTERM or Ctrl-C in the predict stage): no new prediction is created and
-no more polls are made; a creation already sent is waited for and its id saved, and an output that has
-already succeeded is still downloaded (it was paid for, and Replicate deletes it after an hour).
+no more polls are made; requests already sent get ``client.stop_grace_s`` (3 s) more, so a creation answered
+by then has its id saved and an output that has already succeeded is downloaded (it was paid for, and
+Replicate deletes it after an hour); then they are cut off. A creation cut off keeps its intent, so the rerun
+adopts the prediction it made, and a prediction cut off while running or downloading keeps its id.
 Stale temporaries of an example (``.hosted/.<id>.*.part.mp4``, ``.hosted/.<id>.json.*.tmp``) are removed
 when the example runs again.
 """
@@ -478,7 +480,7 @@ class HostedPredictor(Predictor):
         if state_dir.is_dir():
             self._clean_temporaries(state_dir, sample_id)
         state_path = PredictionsFolder(ctx.out_dir).hosted_state(sample_id)
-        deadline = Deadline(cfg.client.example_timeout_s, stop=self._stop)
+        deadline = Deadline(cfg.client.example_timeout_s, stop=self._stop, stop_grace=cfg.client.stop_grace_s)
         stats = CallStats()
         timings: dict[str, float] = {}
         kept = (f"prediction {{pid}} is kept in {state_path}; a rerun of the same command resumes it without "
@@ -683,7 +685,9 @@ class HostedPredictor(Predictor):
         return meta
 
     def close(self) -> None:
-        """Close the connection pool and remove downloads the stage has already copied into place."""
+        """Close the connection pool and remove downloads the stage has already copied into place (the video of
+        that name, as large, written after the download: not an older video of an example that another process
+        sharing the folder is downloading again)."""
         with self._lock:
             client, self._client = self._client, None
             state_dirs = list(self._state_dirs)
@@ -695,7 +699,9 @@ class HostedPredictor(Predictor):
                     continue
                 final = state_dir.parent / video.name
                 try:
-                    if final.is_file() and final.stat().st_size == video.stat().st_size:
+                    placed, downloaded = final.stat(), video.stat()
+                    if (final.is_file() and placed.st_size == downloaded.st_size
+                            and placed.st_mtime_ns >= downloaded.st_mtime_ns):
                         video.unlink()
                 except OSError:
                     pass

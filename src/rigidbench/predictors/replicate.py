@@ -24,6 +24,12 @@ and written atomically. Every failure is a ``PredictionError`` (a ``RigidBenchEr
 stage records; ``StopRequested`` is the one raised when the run is stopping (a signal) and no new request
 for a prediction may be sent.
 
+Stopping (``Deadline.stop``, set on SIGTERM or Ctrl-C): requests already in flight get ``stop_grace_s`` more
+(3 s by default), then are cut off, a creation among them included (the caller has recorded its intent, so a
+rerun adopts the prediction instead of paying again); pauses between polls and retries end at once and
+nothing is retried. While a stop may come, socket reads wait in slices of ``STOP_POLL_S``, so a server that
+holds a request (``Prefer: wait`` holds a creation up to 60 s, a stuck one longer) cannot delay the stop.
+
 URLs that reach a message, a log line (httpx's own included) or a record go through ``public_url``: no
 user information, query or fragment, credential-looking path parts replaced by [REDACTED].
 """
@@ -35,19 +41,20 @@ import json
 import logging
 import os
 import random
-import re
 import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
-from urllib.parse import unquote, urljoin, urlsplit, urlunsplit
+from urllib.parse import urljoin, urlsplit
 
 import httpcore
 import httpx
 
+from ..atomic import umask_mode
 from ..errors import PredictionError, UserError, VideoError
+from ..logsafe import install_filter, public_url, remember_secret, scrub_text
 from ..video import check_decodable, probe_video
 
 log = logging.getLogger(__name__)
@@ -56,7 +63,6 @@ DEFAULT_BASE_URL = "https://api.replicate.com"
 TOKEN_ENV = "REPLICATE_API_TOKEN"
 BASE_URL_ENV = "REPLICATE_BASE_URL"
 TERMINAL = ("succeeded", "failed", "canceled", "aborted")
-REDACTED = "[REDACTED]"
 _CHUNK = 1 << 16
 
 
@@ -74,6 +80,7 @@ class ClientSettings:
     example_timeout_s: float = 1800.0
     max_output_bytes: int = 300_000_000
     min_download_bytes_per_s: int = 16_384  # after the first request_timeout_s of a download
+    stop_grace_s: float = 3.0  # after SIGTERM or Ctrl-C: how long requests in flight may still take
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -105,14 +112,21 @@ class StopRequested(PredictionError):
     """The run is stopping (SIGTERM or Ctrl-C): no new prediction is created and no more polls are made."""
 
 
+#: while a stop is possible, socket reads wait at most this long at a time, then look at the stop again
+STOP_POLL_S = 0.25
+
+
 @dataclass
 class Deadline:
     """The per-example time limit: every wait, request timeout and socket read is cut to what is left of
-    it. ``stop``: an event the predict stage sets on SIGTERM or Ctrl-C (see ``check_stop``)."""
+    it. ``stop``: an event the predict stage sets on SIGTERM or Ctrl-C (see ``check_stop``); once it is set,
+    requests in flight get ``stop_grace`` seconds more (``cut``), pauses end at once, and nothing is retried."""
 
     seconds: float
     start: float = field(default_factory=time.monotonic)
     stop: threading.Event | None = None
+    stop_grace: float = ClientSettings.stop_grace_s
+    _stopped_at: float | None = field(default=None, init=False, repr=False)
 
     @property
     def end(self) -> float:
@@ -133,9 +147,18 @@ class Deadline:
 
     def check_stop(self, what: str) -> None:
         """StopRequested when the run is stopping: called before anything that could start a new payment
-        or a new wait (a creation, a poll)."""
+        or a new wait (a creation, a poll, a retry)."""
         if self.stopping():
             raise StopRequested(f"{what}: not done, the run is stopping")
+
+    def cut(self) -> float | None:
+        """When (``time.monotonic``) requests in flight are cut off because the run is stopping: ``stop_grace``
+        seconds after this deadline first saw the stop; None while it is not stopping."""
+        if not self.stopping():
+            return None
+        if self._stopped_at is None:
+            self._stopped_at = time.monotonic()
+        return self._stopped_at + self.stop_grace
 
 
 # -- the whole exchange under the deadline ------------------------------------------------------------
@@ -146,7 +169,8 @@ _local = threading.local()
 @dataclass
 class _Budget:
     """What the current thread's request may still take: until ``until`` (monotonic), and at least
-    ``min_rate`` bytes/s on average once ``grace`` seconds have passed (0: no rate rule)."""
+    ``min_rate`` bytes/s on average once ``grace`` seconds have passed (0: no rate rule); and, when the
+    example's ``deadline`` has a stop, until the stop's cut (``Deadline.cut``)."""
 
     until: float
     reason: str
@@ -154,17 +178,33 @@ class _Budget:
     grace: float = 0.0
     start: float = field(default_factory=time.monotonic)
     received: int = 0
+    deadline: Deadline | None = None
 
-    def timeout(self, timeout: float | None) -> float:
+    def left(self, exc: type = httpcore.ReadTimeout) -> float:
+        """Seconds left before the first limit; ``exc`` with its reason when one has passed."""
         now = time.monotonic()
         left = self.until - now
         if left <= 0:
-            raise httpcore.ReadTimeout(self.reason)
-        elapsed = now - self.start
+            raise exc(self.reason)
+        cut = self.deadline.cut() if self.deadline is not None else None
+        if cut is not None:
+            if cut <= now:
+                raise exc(f"cut off {self.deadline.stop_grace:g} s after the run was asked to stop "
+                          "(client.stop_grace_s)")
+            left = min(left, cut - now)
+        return left
+
+    def timeout(self, timeout: float | None) -> float:
+        """The timeout of the next socket read: ``timeout`` cut to what is left; at most STOP_POLL_S while a
+        stop may come (the read is then a slice of the wait, see ``_BudgetStream.read``)."""
+        left = self.left()
+        elapsed = time.monotonic() - self.start
         if self.min_rate and elapsed > self.grace and self.received < self.min_rate * elapsed:
             raise httpcore.ReadTimeout(f"the transfer is slower than the minimum of {self.min_rate:,.0f} bytes/s "
                                        f"({self.received:,} bytes in {elapsed:.1f} s; "
                                        "client.min_download_bytes_per_s)")
+        if self.deadline is not None and self.deadline.stop is not None:
+            left = min(left, STOP_POLL_S)
         return left if timeout is None else min(timeout, left)
 
 
@@ -175,23 +215,28 @@ class _BudgetStream:
         self._inner = inner
 
     def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        """Wait up to ``timeout`` for data, in slices (``_Budget.timeout``): a slice that ends without data
+        reads on (a timed-out recv consumes nothing) until the caller's timeout or a budget limit passes."""
         budget = getattr(_local, "budget", None)
         if budget is None:
             return self._inner.read(max_bytes, timeout)
-        try:
-            data = self._inner.read(max_bytes, budget.timeout(timeout))
-        except httpcore.ReadTimeout:
-            budget.timeout(None)  # our own reason when the budget is what ran out
-            raise
-        budget.received += len(data)
-        return data
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            wanted = None if end is None else end - time.monotonic()
+            if wanted is not None and wanted <= 0:
+                raise httpcore.ReadTimeout("timed out")
+            try:
+                data = self._inner.read(max_bytes, budget.timeout(wanted))
+            except httpcore.ReadTimeout:
+                budget.timeout(None)  # our own reason when the budget (or the stop) is what ran out
+                continue  # else a slice, or the caller's timeout (raised above)
+            budget.received += len(data)
+            return data
 
     def write(self, buffer: bytes, timeout: float | None = None) -> None:
         budget = getattr(_local, "budget", None)
         if budget is not None:
-            left = budget.until - time.monotonic()
-            if left <= 0:
-                raise httpcore.WriteTimeout(budget.reason)
+            left = budget.left(httpcore.WriteTimeout)
             timeout = left if timeout is None else min(timeout, left)
         self._inner.write(buffer, timeout)
 
@@ -250,13 +295,15 @@ class _budget:
 
 
 def _limit(deadline: Deadline, seconds: float, what: str) -> _Budget:
-    """The budget of one request: ``seconds`` from now, or the example's deadline if that comes first."""
+    """The budget of one request: ``seconds`` from now, or the example's deadline if that comes first (and the
+    deadline's stop, ``Deadline.cut``)."""
     until = time.monotonic() + seconds
     if deadline.end <= until:
         return _Budget(deadline.end, f"{what}: stopped at the per-example timeout of {deadline.seconds:g} s "
-                                     "(client.example_timeout_s in models.yaml), counted over the whole exchange")
+                                     "(client.example_timeout_s in models.yaml), counted over the whole exchange",
+                       deadline=deadline)
     return _Budget(until, f"{what}: no complete answer within {seconds:g} s (the request's read timeout plus "
-                          "client.request_timeout_s)")
+                          "client.request_timeout_s)", deadline=deadline)
 
 
 def base_url_from_env() -> str:
@@ -269,58 +316,11 @@ def base_url_from_env() -> str:
     return base[:-3] if base.endswith("/v1") else base
 
 
-#: a path segment that looks like a credential: a name such as token, key or signature with a value, a
-#: Replicate API token (r8_...), a JSON web token, or path parameters (;jsessionid=...)
-_CREDENTIAL = re.compile(r"(?i)(token|key|secret|sig|signature|auth|password|passwd|credential|session|bearer)"
-                         r"[^/]*[=:]|\br8_[A-Za-z0-9]{8,}|\beyJ[A-Za-z0-9_-]{8,}\.|;")
-_URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s\"'<>]+")
-
-
-def public_url(url: str) -> str:
-    """``url`` without user information, query or fragment, and with every credential-looking path segment
-    replaced by [REDACTED] (safe to log and record)."""
-    try:
-        parts = urlsplit(str(url))
-        host = parts.hostname or ""
-        if parts.port:
-            host = f"{host}:{parts.port}"
-    except ValueError:
-        return REDACTED
-    segments = [REDACTED if _CREDENTIAL.search(unquote(seg)) else seg for seg in parts.path.split("/")]
-    return urlunsplit((parts.scheme, host, "/".join(segments), "", ""))
-
-
-def scrub_text(text: str, secrets=()) -> str:
-    """``text`` with every URL in it made public (``public_url``) and every secret replaced by [REDACTED]."""
-    text = _URL.sub(lambda m: public_url(m.group(0)), str(text))
-    for secret in secrets:
-        if secret:
-            text = text.replace(secret, REDACTED)
-    return text
-
-
-_SECRETS: set[str] = set()  # the tokens of the clients made in this process (for the log filter)
-
-
-class _ScrubLogs(logging.Filter):
-    """Removes URL queries and the token from records of httpx and httpcore (httpx logs every request's
-    full URL at INFO) and of this package's hosted-model modules."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        try:
-            message = record.getMessage()
-        except Exception:  # noqa: BLE001 - a broken record is not ours to fix
-            return True
-        clean = scrub_text(message, tuple(_SECRETS))
-        if clean != message:
-            record.msg, record.args = clean, ()
-        return True
-
-
-_LOG_FILTER = _ScrubLogs()
-for _name in ("httpx", "httpcore.connection", "httpcore.http11", "httpcore.proxy", __name__,
-              __name__.rpartition(".")[0] + ".hosted"):
-    logging.getLogger(_name).addFilter(_LOG_FILTER)
+_LOG_NAMES = ("httpx", "httpcore.connection", "httpcore.http11", "httpcore.proxy", __name__,
+              __name__.rpartition(".")[0] + ".hosted")
+# httpx logs every request's full URL at INFO: its records and ours are scrubbed even where the command line's
+# logging (logsafe.configure_logging) is not in use.
+install_filter(_LOG_NAMES)
 
 
 def token_from_env() -> str:
@@ -359,14 +359,13 @@ class ReplicateClient:
     """Thread-safe: one instance serves every example of a run (one connection pool)."""
 
     def __init__(self, settings: ClientSettings, *, base_url: str | None = None, token: str | None = None,
-                 max_connections: int = 16, sleep: Callable[[float], None] = time.sleep):
+                 max_connections: int = 16, sleep: Callable[[float], None] | None = None):
         self.settings = settings
         self.base_url = (base_url or base_url_from_env()).rstrip("/")
         self._token = token if token is not None else token_from_env()
-        if self._token:
-            _SECRETS.add(self._token)
+        remember_secret(self._token)
         self._api_host = urlsplit(self.base_url).netloc
-        self._sleep = sleep
+        self._sleep = sleep  # None: time.sleep, ended early by the example's stop (``_nap``)
         self._rng = random.Random()
         self._rng_lock = threading.Lock()
         limits = httpx.Limits(max_connections=max_connections, max_keepalive_connections=max_connections)
@@ -481,7 +480,7 @@ class ReplicateClient:
                 except httpx.TransportError as exc:
                     raise _Retry(None, None, self.scrub(f"{type(exc).__name__}: {exc}")) from None
                 _check_video(tmp, what)
-                os.chmod(tmp, 0o644)  # as the JSON files beside it (mkstemp makes it private)
+                umask_mode(tmp)  # mkstemp makes it private; it gets the mode of every other output
                 tmp.replace(dest)
                 return dest, size
             except _Retry as retry:
@@ -550,8 +549,10 @@ class ReplicateClient:
             return response
 
     def _retry_or_fail(self, retry: "_Retry", attempt: int, what: str, deadline: Deadline, stats: CallStats) -> int:
-        """Count the failure, wait (Retry-After or backoff) and return the next attempt number, or raise."""
+        """Count the failure, wait (Retry-After or backoff) and return the next attempt number, or raise
+        (StopRequested when the run is stopping: nothing is retried then)."""
         label = "network error" if retry.status is None else f"HTTP {retry.status}"
+        deadline.check_stop(f"{what}: {label} ({retry.message})")
         if attempt >= self.settings.max_retries:
             raise ReplicateError(f"{what}: {label} after {attempt + 1} attempts: {retry.message}", retry.status)
         if retry.status == 429:
@@ -566,7 +567,8 @@ class ReplicateClient:
                                  f"per-example timeout of {deadline.seconds:g} s", retry.status)
         log.warning("%s: %s (%s); retrying in %.2f s (%d of %d)", what, label, retry.message, pause, attempt + 1,
                     self.settings.max_retries)
-        self._sleep(pause)
+        self._nap(pause, deadline)
+        deadline.check_stop(f"{what}: {label} ({retry.message})")
         return attempt + 1
 
     def _backoff(self, attempt: int) -> float:
@@ -577,8 +579,17 @@ class ReplicateClient:
 
     def _pause(self, seconds: float, deadline: Deadline, what: str) -> None:
         left = deadline.check(what)
-        self._sleep(min(seconds, left))
+        self._nap(min(seconds, left), deadline)
         deadline.check(what)
+
+    def _nap(self, seconds: float, deadline: Deadline) -> None:
+        """Sleep ``seconds``; woken at once when the example's stop is set (the caller then checks it)."""
+        if self._sleep is not None:
+            self._sleep(seconds)
+        elif deadline.stop is not None:
+            deadline.stop.wait(seconds)
+        else:
+            time.sleep(seconds)
 
     def _message(self, response: httpx.Response) -> str:
         """The API's message from an error answer (problem JSON ``detail``/``title``, or the text), scrubbed."""

@@ -7,11 +7,16 @@
 - ``results.json`` ``readouts``: per readout with a distribution (speed, gravity, g s^-2,
   restitution) the median, quartiles, finite and total counts, and per flag the number raised, the
   number where it is defined and their ratio; overall, per task and per partition (one run is one model).
+
+Reading a run folder back (``load_run_readouts``, ``record_problem``) never stops at one damaged file: a
+truncated, empty, non-UTF-8, foreign or directory per-example file is left out with a warning naming it
+and what to do, and counted; a damaged ``results.json`` is one error naming it.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -20,8 +25,16 @@ import numpy as np
 from rigidbench.atomic import write_text
 from rigidbench.errors import UserError
 from rigidbench.folders import READOUTS_SUFFIX, RunFolder
+from rigidbench.jsonio import DamagedJSON, load_json, read_json
 from rigidbench.readouts import compute_readouts, context_from_sample
 from rigidbench.readouts.flags import FLAGS, THRESHOLDS
+
+log = logging.getLogger(__name__)
+
+#: what to do about a damaged or missing per-example readouts file (the evaluate stage's intactness check
+#: finds it and scores its example again)
+RESCORE = "rerun `rigidbench evaluate` with the same --out to score {} again"
+LEFT_OUT = f"its example is left out; {RESCORE.format('it')}"
 
 #: the scalars summarised by median and IQR: name in the compact summary -> (readout, key)
 DISTRIBUTIONS = {"speed": ("speed", "value"), "gravity": ("gravity", "value"),
@@ -70,13 +83,35 @@ def example_readouts(sample, inputs, scores: dict, out_dir: str | Path) -> dict:
     return summary(readouts)
 
 
+#: what reading a readouts file's content may raise when a field has another type or is absent
+_CONTENT_ERRORS = (KeyError, TypeError, AttributeError, ValueError)
+
+
+def read_example_readouts(path: Path, then: str = LEFT_OUT) -> dict | None:
+    """The readouts file of one example when it can be used: a JSON object with its ``id`` and ``readouts``
+    that ``summary`` reads. None when there is none, or (with a warning naming the file, why and ``then``,
+    what happens and what to do) when it is damaged: truncated, empty, not UTF-8, a directory, another
+    document."""
+    doc = read_json(path, then, expect=dict)
+    if doc is None:
+        return None
+    try:
+        if not isinstance(doc["id"], str):
+            raise TypeError(f"'id' is {type(doc['id']).__name__}, not text")
+        summary(doc["readouts"])
+    except _CONTENT_ERRORS as exc:
+        log.warning("%s: not a readouts file (%s: %s); %s", path, type(exc).__name__, exc, then)
+        return None
+    return doc
+
+
 def _record_summary(record: dict, out_dir: Path | None) -> dict | None:
     if isinstance(record.get("readouts"), dict):
         return record["readouts"]
     if out_dir is not None:  # a record reused from a run before readouts: read its file if there is one
-        path = RunFolder(out_dir).readouts(record["id"])
-        if path.exists():
-            return summary(json.loads(path.read_text())["readouts"])
+        doc = read_example_readouts(RunFolder(out_dir).readouts(record["id"]))
+        if doc is not None:
+            return summary(doc["readouts"])
     return None
 
 
@@ -116,18 +151,73 @@ def aggregate_readouts(records: list[dict], out_dir: str | Path | None = None) -
     return block
 
 
+def record_problem(record: dict) -> str | None:
+    """Why a score record (``examples/<id>.json``, a JSON object) cannot be used: a field evaluate writes and
+    the report and results.json read is absent or of another type; None when it can be."""
+    for key in ("id", "task", "partition"):
+        if not isinstance(record.get(key), str):
+            return f"its '{key}' is {'absent' if key not in record else 'not text'}"
+    metrics = record.get("metrics")
+    if not isinstance(metrics, dict):
+        return f"its 'metrics' is {'absent' if metrics is None else 'not a JSON object'}"
+    bad = [m for m, v in metrics.items()
+           if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)))]
+    if bad:
+        return f"its metric '{bad[0]}' is not a number or null"
+    if not isinstance(record.get("skipped", {}), dict):
+        return "its 'skipped' is not a JSON object"
+    return None
+
+
+def rewrite_hint(run_dir: Path, path: Path) -> str:
+    """What to do about a damaged run-level file of a run folder (results.json, run.json): evaluate with the same
+    --out writes it again from the kept examples (a folder in its place must be moved aside first)."""
+    aside = f"move the folder {path} aside, then " if path.is_dir() else ""
+    return (f"{aside}rerun `rigidbench evaluate` with --out {run_dir}: it keeps every scored example and writes "
+            f"{path.name} again")
+
+
+def _run_results(folder: RunFolder) -> dict:
+    """results.json of a run folder ({} when there is none); a damaged one is a UserError naming it and what to
+    do (its readouts block is what the command prints)."""
+    rewrite = rewrite_hint(folder.path, folder.results)
+    try:
+        results = load_json(folder.results, expect=dict)
+    except FileNotFoundError:
+        return {}
+    except DamagedJSON as exc:
+        raise UserError(f"{exc}; {rewrite}") from None
+    block = results.get("readouts")
+    if block is not None and not (isinstance(block, dict) and isinstance(block.get("overall"), dict)):
+        raise UserError(f"{folder.results}: its 'readouts' is not a readouts block; {rewrite}")
+    return results
+
+
 def load_run_readouts(run_dir: str | Path) -> tuple[str, dict, list[dict]]:
     """(model, readouts block, per-example readout files) of a run folder; the block is recomputed from the
-    per-example files when results.json has none (a run scored before readouts existed)."""
+    per-example files when results.json has none (a run scored before readouts existed). The block's
+    ``unreadable`` gives each scored example whose readouts file is missing or damaged, and why: it is left
+    out of the per-example files (a warning names each damaged file)."""
     folder = RunFolder(run_dir)
-    results = json.loads(folder.results.read_text()) if folder.results.exists() else {}
-    examples = [json.loads(p.read_text()) for p in sorted(folder.examples_dir.glob(f"*{READOUTS_SUFFIX}"))]
+    results = _run_results(folder)
+    failed = results.get("failed") if isinstance(results.get("failed"), dict) else {}
+    scored = {p.stem for p in folder.records()} - set(failed)  # examples/<id>.json of the examples scored
+    with_file = {p.name[:-len(READOUTS_SUFFIX)] for p in folder.examples_dir.glob(f"*{READOUTS_SUFFIX}")}
+    examples, unreadable = [], {}
+    for sample_id in sorted(scored | with_file):
+        path = folder.readouts(sample_id)
+        doc = read_example_readouts(path)
+        if doc is not None:
+            examples.append(doc)
+        else:
+            unreadable[sample_id] = f"{path.relative_to(folder.path)} " + ("damaged" if path.exists() or
+                                                                          path.is_symlink() else "missing")
     block = results.get("readouts")
     if block is None:
         records = [{"id": e["id"], "task": e.get("task", ""), "partition": e.get("partition", ""),
                     "readouts": summary(e["readouts"])} for e in examples]
         block = aggregate_readouts(records)
-    return results.get("model", folder.path.name), block, examples
+    return str(results.get("model") or folder.path.name), {**block, "unreadable": unreadable}, examples
 
 
 def _fmt(d: dict) -> str:
@@ -138,8 +228,11 @@ def _fmt(d: dict) -> str:
 
 def format_block(model: str, block: dict) -> list[str]:
     """Lines that print one run's readouts: distributions overall and per task, then flag rates."""
+    unreadable = block.get("unreadable") or {}
     lines = [f"{model}: readouts of {block.get('n', 0)} examples (median [q25, q75] (finite/n)); "
-             f"world fit: {block.get('fit', 'frame0')}"]
+             f"world fit: {block.get('fit', 'frame0')}"
+             + (f"; {len(unreadable)} example(s) without a readable readouts file, left out of the per-example "
+                "values" if unreadable else "")]
     header = f"  {'':<28}{'speed s':<28}{'gravity g m/s2':<28}{'g s^-2':<28}{'restitution e':<28}"
     lines.append(header)
     rows = [("overall", block["overall"])] + [(f"task {k}", v) for k, v in block.get("by_task", {}).items()] + \
@@ -153,6 +246,9 @@ def format_block(model: str, block: dict) -> list[str]:
     if block.get("missing"):
         lines.append(f"  no readouts for {len(block['missing'])} examples (scored before readouts existed): "
                      f"rerun evaluate to add them")
+    if unreadable:
+        lines.append(f"  left out, {len(unreadable)} example(s): " + "; ".join(unreadable.values())
+                     + f"; {RESCORE.format('them')}")
     return lines
 
 
@@ -183,5 +279,5 @@ def cmd_readouts(args, ctx=None) -> int:
                 s = summary(e["readouts"])
                 raised = [k for k, v in s["flags"].items() if v]
                 vals = ", ".join(f"{k} {('-' if s[k] is None else format(s[k], '.3g'))}" for k in DISTRIBUTIONS)
-                print(f"    {e['id']} ({e['task']}): {vals}; flags: {', '.join(raised) or 'none'}")
+                print(f"    {e['id']} ({e.get('task', '')}): {vals}; flags: {', '.join(raised) or 'none'}")
     return 0

@@ -17,6 +17,12 @@ Writes into the output directory::
                                     mask outlines, and looping clips (where the reference bundles and
                                     predictions that run.json records are on this machine)
 
+When every run is on the verified published set, scored under protocol rigidbench-v1 with neural perception
+over all its examples, the model, task and partition tables (and model_metrics.csv, by_task.csv,
+by_partition.csv, whose `source` column tells them apart) also show the paper's numbers
+(configs/paper_numbers.yaml), marked "reported in the paper, not re-scored here"; otherwise one line under
+"Model comparison" and in report.md says why they are not shown (report/paper.py).
+
 matplotlib is imported only when figures are drawn.
 """
 
@@ -27,6 +33,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from rigidbench.argtypes import writable
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import analyse
 from rigidbench.report.checkpoints import checkpoint_figure, checkpoint_tables, find_checkpoints, write_checkpoint_csv
@@ -34,6 +41,7 @@ from rigidbench.report.examples import build_filmstrips
 from rigidbench.report.figures import build_figures
 from rigidbench.report.html import render_page
 from rigidbench.report.load import ReportError, ScoreTable, load_runs
+from rigidbench.report.paper import comparison_problem, load_paper_numbers
 from rigidbench.report.readouts import readout_section
 from rigidbench.report.tables import build_tables, to_markdown, write_csvs, write_tables
 
@@ -161,14 +169,17 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     tables_dir, figures_dir = out_dir / "tables", out_dir / "figures"
     tables_dir.mkdir(parents=True, exist_ok=True)
     figures_dir.mkdir(parents=True, exist_ok=True)
-    tables = build_tables(data)
+    paper = load_paper_numbers()
+    paper_note = comparison_problem(table, paper) or ""  # the paper's rows only beside comparable runs
+    reported = None if paper_note else paper
+    tables = build_tables(data, reported)
     sweep = find_checkpoints(data)
     if sweep is not None:
         tables += checkpoint_tables(data, sweep)
     readout_tables, readout_figures = readout_section(run_dirs, figures_dir)  # beside the ten measurements
     tables += readout_tables
     table_files = write_tables(tables, tables_dir)
-    csv_paths = {p.name: p for p in write_csvs(data, tables_dir)}
+    csv_paths = {p.name: p for p in write_csvs(data, tables_dir, reported)}
     if sweep is not None:
         path = write_checkpoint_csv(data, sweep, tables_dir)
         csv_paths[path.name] = path
@@ -183,7 +194,7 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     probe = probe_link(probe_report, out_dir)
     strips = build_filmstrips(data, out_dir / "examples", n_examples=examples, clips=clips, outlines=outlines)
     notes = report_notes(data)
-    markdown = ["# RigidBench report", ""] + [f"- {n}" for n in notes.lines()]
+    markdown = ["# RigidBench report", ""] + [f"- {n}" for n in notes.lines() + ([paper_note] if paper_note else [])]
     if probe is not None:
         markdown.append(f"- Probe report: [{probe[0]}]({probe[0]}){probe[1]}")
     if sweep is not None:
@@ -204,7 +215,7 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     (out_dir / "report.md").write_text("\n".join(markdown))
     page = out_dir / "report.html"
     page.write_text(render_page(data, notes, tables, table_files, figures, out_dir, strips,
-                                checkpoints=sweep, probe=probe))
+                                checkpoints=sweep, probe=probe, paper_note=paper_note))
     log.info("wrote %s", page)
     return page
 
@@ -213,6 +224,7 @@ def cmd_report(args, ctx=None) -> int:
     """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed; optional
     args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived"),
     args.probe_report (a probe report to link)."""
+    writable(args.out)
     page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline,
                         examples=getattr(args, "examples", 3), clips=not getattr(args, "no_clips", False),
                         outlines=getattr(args, "outlines", "reference"),

@@ -357,7 +357,6 @@ def _save_jpeg(image: np.ndarray, path: Path) -> Path:
 def _save_clip(frames: np.ndarray, fps: float, path: Path) -> Path | None:
     try:
         write_video(path, frames, fps=fps, crf=26, preset="veryfast")
-        os.chmod(path, 0o644)  # write_video's temporary file is private; a report is meant to be shared
         return path
     except READ_ERRORS as exc:  # a clip is optional: its strip is still shown
         log.warning("could not write the clip %s: %s", path, exc)

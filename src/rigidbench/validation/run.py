@@ -11,6 +11,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..argtypes import writable
 from ..atomic import write_text
 from ..errors import UserError
 from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported, resolve_split_dir
@@ -234,6 +235,7 @@ def _json_safe(x):
 def cmd_validate_metrics(args, ctx=None) -> int:
     """CLI: rigidbench validate-metrics --data DIR --out DIR [--examples N] [--severities K] [--seed S]
     [--with-rendered]."""
+    writable(args.out)
     try:
         out = validate_metrics(resolve_split_dir(args.data, args.split), args.out, examples=args.examples, severities=args.severities,
                                seed=args.seed, with_rendered=getattr(args, "with_rendered", False))
