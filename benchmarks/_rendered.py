@@ -38,7 +38,7 @@ def render_eval_examples(ids, preset: str, root: Path) -> Path:
     """Render evaluation examples ``ids`` at ``preset`` into ``root/data/eval``; returns that folder."""
     from rigidbench import manifest
     from rigidbench.config import load_registry
-    from rigidbench.pipeline.render import render_to_bundle
+    from rigidbench.stages.render import render_to_bundle
 
     reg = load_registry()
     rows = {r.sample_id: r for r in manifest.eval_rows(reg)}

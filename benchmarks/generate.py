@@ -34,9 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _stand_in():
-    """The stand-in server module from tests/fixtures (imported by path: tests is not a package)."""
-    sys.path.insert(0, str(ROOT / "tests" / "fixtures"))
-    import replicate_server
+    """The stand-in server module of the tests' fixtures package."""
+    sys.path.insert(0, str(ROOT / "tests"))  # the fixtures package
+    from fixtures import replicate_server
 
     return replicate_server
 
@@ -47,7 +47,7 @@ def hosted_section(examples: int = 24, repeats: int = 3, concurrency: tuple[int,
 
     from rigidbench.config import PACKAGE_CONFIG_DIR
     from rigidbench.context import RunContext
-    from rigidbench.pipeline.predict import predict
+    from rigidbench.stages.predict import predict
     from rigidbench.predictors import PREDICTORS, PredictContext
     from rigidbench.predictors.replicate import CallStats, ClientSettings, Deadline, ReplicateClient
 
@@ -135,8 +135,8 @@ def _local_row(name: str, size: str, steps: int | None, repeats: int) -> dict:
 
     import torch
 
-    sys.path.insert(0, str(ROOT / "tests" / "fixtures"))
-    import tiny_video_models
+    sys.path.insert(0, str(ROOT / "tests"))  # the fixtures package
+    from fixtures import tiny_video_models
 
     from rigidbench.errors import PredictionError
     from rigidbench.predictors import PREDICTORS, PredictContext

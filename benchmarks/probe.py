@@ -134,7 +134,7 @@ def _reset_peak_rss() -> bool:
 
 
 def time_inlp_cell(x, y, device: str, dtype) -> dict:
-    from rigidbench.probe.intervene import fit_bases
+    from rigidbench.stages.probe_bases import fit_bases
 
     dev = torch.device(device)
     if dev.type == "cuda":

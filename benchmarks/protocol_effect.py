@@ -74,7 +74,7 @@ def run(ids, preset: str, modes, root: Path) -> dict:
 
 
 def evaluate_means(preds: Path, data: Path, out: Path, protocol: str) -> dict:
-    from rigidbench.evaluation import evaluate
+    from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
 
     summary = evaluate(preds, data, out, nets=FeatureNets(), progress=False, protocol=protocol, allow_short=True)
@@ -92,7 +92,7 @@ def change(a: dict, b: dict) -> dict:
 
 def suite(data: Path, modes, root: Path) -> dict:
     """Every failure mode predicted once and scored under each protocol."""
-    from rigidbench.pipeline.predict import predict
+    from rigidbench.stages.predict import predict
     from rigidbench.predictors import PredictContext
 
     means: dict = {p: {} for p in PROTOCOLS}
@@ -114,7 +114,7 @@ def perceived_inputs(data: Path, sample_id: str, root: Path):
     from rigidbench.groundtruth.bundle import Sample
     from rigidbench.perception.base import get_backend
     from rigidbench.perception.features import FeatureNets
-    from rigidbench.pipeline.predict import predict
+    from rigidbench.stages.predict import predict
     from rigidbench.predictors import PredictContext
     from rigidbench.video import align_video, read_video, reference_times
 

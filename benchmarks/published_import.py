@@ -83,11 +83,12 @@ def main() -> None:
     width, height = (96, 64) if args.quick else (int(v) for v in args.size.lower().split("x"))
     frames = 9 if args.quick else args.frames
 
-    sys.path.insert(0, str(ROOT / "tests" / "fixtures"))
-    import published_set as ps
+    sys.path.insert(0, str(ROOT / "tests"))  # the fixtures package
+    from fixtures import published_set as ps
 
     from rigidbench.config import registry
-    from rigidbench.datasets.importer import import_published, source_digest
+    from rigidbench.stages.import_set import import_published
+    from rigidbench.datasets.convert import source_digest
     from rigidbench.groundtruth.bundle import check_bundle
 
     with tempfile.TemporaryDirectory() as tmp:

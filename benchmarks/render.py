@@ -63,7 +63,7 @@ def load_average() -> float | None:
 def time_example(row, reg, preset, device: str) -> dict:
     """Render one example in this process; returns timings (seconds, per frame where named so)."""
     from rigidbench.blender.render import render_example
-    from rigidbench.spec.build import build_scene_spec
+    from rigidbench.scene_spec.build import build_scene_spec
 
     spec = build_scene_spec(row, reg)
     load_before = load_average()

@@ -32,7 +32,7 @@ class NoopWorker:
 
 def render_rate(rows, reg, quality: str, executor_name: str, workers: int) -> dict:
     from rigidbench.executors import RayExecutor
-    from rigidbench.pipeline.render import render_rows
+    from rigidbench.stages.render import render_rows
 
     with tempfile.TemporaryDirectory(prefix="rigidbench-scale-") as tmp:
         t0 = time.perf_counter()

@@ -2,7 +2,7 @@
 
 Target: under 0.2 s per example on one core. By default the process is pinned to one CPU and
 BLAS threads are limited to one. Workloads:
-  --source hand      one hand-built spec per task (tests/integration/conftest.py)
+  --source hand      one hand-built spec per task (tests/fixtures/scenes.py)
   --source eval|train  the first manifest row of each task, built with build_scene_spec
   --spec FILE ...    scene_spec.json files
 Usage: python benchmarks/simulate.py [--quick] [--source hand] [--repeat 5] [--all-cores]
@@ -30,8 +30,8 @@ TARGET_S = 0.2
 
 def hand_specs(reg):
     """One hand-built spec per task, shared with the integration tests."""
-    sys.path.insert(0, str(ROOT / "tests" / "integration"))
-    from conftest import hand_specs as build  # type: ignore[import-not-found]
+    sys.path.insert(0, str(ROOT / "tests"))  # the fixtures package
+    from fixtures.scenes import hand_specs as build  # type: ignore[import-not-found]
 
     return build(reg)
 
@@ -39,7 +39,7 @@ def hand_specs(reg):
 def manifest_specs(reg, split: str):
     """The first manifest row of each task, built into a SceneSpec."""
     from rigidbench.manifest import rows
-    from rigidbench.spec.build import build_scene_spec
+    from rigidbench.scene_spec.build import build_scene_spec
 
     out = {}
     for row in rows(split, reg):
@@ -49,7 +49,7 @@ def manifest_specs(reg, split: str):
 
 
 def file_specs(paths):
-    from rigidbench.spec.types import SceneSpec
+    from rigidbench.scene_spec.types import SceneSpec
 
     return {f"{Path(p).parent.name or Path(p).stem}:{i}": SceneSpec.from_json(Path(p).read_text())
             for i, p in enumerate(paths)}

@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def tiny_video(width: int, height: int, frames: int, steps: int) -> np.ndarray:
     """(T,H,W,3) uint8: the tiny Wan pipeline's video through the wan-2.2 adapter."""
-    sys.path.insert(0, str(ROOT / "tests" / "fixtures"))
-    import tiny_video_models as tiny
+    sys.path.insert(0, str(ROOT / "tests"))  # the fixtures package
+    from fixtures import tiny_video_models as tiny
 
     from rigidbench.predictors import PREDICTORS, PredictContext
 

@@ -57,9 +57,9 @@ def main() -> int:
 
 def run(ids, preset: str, modes, root: Path) -> dict:
     """Render ``ids`` at ``preset`` under ``root``, then score ``modes`` with tracks by each rule."""
-    from rigidbench.evaluation import evaluate
+    from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
-    from rigidbench.pipeline.predict import predict
+    from rigidbench.stages.predict import predict
     from rigidbench.predictors import PredictContext
 
     out: dict = {"ids": ids, "preset": preset, "rules": {}}

@@ -49,8 +49,8 @@ def main() -> None:
 
     import torch
 
-    sys.path.insert(0, str(ROOT / "tests" / "fixtures"))
-    import tiny_video_models as tiny
+    sys.path.insert(0, str(ROOT / "tests"))  # the fixtures package
+    from fixtures import tiny_video_models as tiny
 
     from rigidbench.predictors import PREDICTORS, PredictContext
 

@@ -54,7 +54,7 @@ from rigidbench.groundtruth.contacts import quat_to_matrix
 from rigidbench.groundtruth.tracks import ground_truth_tracks
 from rigidbench.report.gallery import (Event, encode_under, event_frames, example_sheet, font, marker_subset,
                                        objects_sheet, pick_examples)
-from rigidbench.spec.build import build_scene_spec
+from rigidbench.scene_spec.build import build_scene_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT_DIR = ROOT / "docs" / "gallery"

@@ -1,4 +1,5 @@
-"""What a video model is given: the first frame, the prompt and the negative prompt.
+"""What a video model is given: the first frame, the prompt and the negative prompt (the dataset API, kept at the
+release's import path; benchmarks/ at the repository root holds timing scripts).
 
     for example in rigidbench.Benchmark.load("data/eval"):
         video = my_model(example.image, example.prompt, example.negative_prompt)

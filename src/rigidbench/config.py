@@ -9,12 +9,13 @@ one, a new ``id`` adds an object, scene, task or material.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import functools
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Sequence
 
 import yaml
 
@@ -674,3 +675,20 @@ def registry(extra_dirs: Iterable[str | Path] = ()) -> Registry:
     The environment is not consulted here: the command line turns ``$RIGIDBENCH_CONFIG_PATH`` and
     ``--config`` into the directories of its ``RunContext``, which passes them down."""
     return _cached(tuple(str(Path(d).resolve()) for d in extra_dirs))
+
+
+# -- configuration values as parts of a stage's key ----------------------------------------------------------
+
+#: Configuration fields that do not change what is rendered or simulated (where the entry was read from).
+UNKEYED_CONFIG_FIELDS = ("source", "description")
+
+
+def plain(value: Any, skip: Sequence[str] = UNKEYED_CONFIG_FIELDS) -> Any:
+    """A configuration value as JSON types (dataclasses as dicts without the ``skip`` fields), for a key."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: plain(getattr(value, f.name), skip) for f in dataclasses.fields(value) if f.name not in skip}
+    if isinstance(value, Mapping):
+        return {str(k): plain(v, skip) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v, skip) for v in value]
+    return value

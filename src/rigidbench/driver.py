@@ -45,8 +45,6 @@ other, the last from everything done by then.
 from __future__ import annotations
 
 import fcntl
-import hashlib
-import json
 import logging
 import os
 import shutil
@@ -60,6 +58,7 @@ from typing import Any, Callable, ClassVar, Iterator, Mapping, Sequence
 from .atomic import as_write_error, release_open_writers, replace_path
 from .errors import EXAMPLE_ERRORS, UserError
 from .executors import Executor, LocalExecutor, Resources, Shard
+from .hashing import digest
 from .jsonio import read_json, write_json
 from .registry import load_target
 
@@ -74,21 +73,6 @@ LOCK_POLL_S = 0.2  # how often a process waiting for another's lock (--wait) loo
 STOPPED = "stopped"  # a record's status when the example's ledger entry could not be written
 
 Progress = Callable[[int, int], None]
-
-
-def digest(*parts: Any) -> str:
-    """A stable hex key of JSON-serialisable parts (sorted keys; paths and other objects as text)."""
-    text = json.dumps(parts, sort_keys=True, default=str, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
-def file_digest(path: str | Path, chunk: int = 1 << 20) -> str:
-    """The sha256 hex digest of a file's content (read in chunks): the one content hash of keys."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 # -- selection -----------------------------------------------------------------------------------------
@@ -733,6 +717,6 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
 
 
 __all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "LEDGER_DIR", "Selection", "Stage", "StageReport",
-           "StageWorker", "commit", "digest", "file_digest", "fresh_staging", "ledger_outcomes", "ledger_path",
+           "StageWorker", "commit", "fresh_staging", "ledger_outcomes", "ledger_path",
            "lock_path", "output_kinds", "outputs_intact", "plan", "read_ledger", "run_stage", "stage_dir",
            "staging_path", "wait_for_others", "write_ledger"]

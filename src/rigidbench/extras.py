@@ -47,7 +47,10 @@ INCLUDES: dict[str, frozenset[str]] = {
 }
 
 #: our packages whose users install a larger extra: a package they import is named with that extra
-OWNERS: tuple[tuple[str, str], ...] = (("rigidbench.train", "train"), ("rigidbench.probe", "train"))
+OWNERS: tuple[tuple[str, str], ...] = tuple((package, "train") for package in (
+    "rigidbench.train", "rigidbench.probe", "rigidbench.stages.preprocess", "rigidbench.stages.probe_extract",
+    "rigidbench.stages.probe_bases", "rigidbench.stages.probe_intervene", "rigidbench.commands.training",
+    "rigidbench.commands.probing"))
 
 
 def install_command(extra: str) -> str:

@@ -12,23 +12,21 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import published_set as ps  # noqa: E402
+from fixtures import published_set as ps  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
-from rigidbench.datasets.importer import import_published  # noqa: E402
 from rigidbench.errors import BundleError  # noqa: E402
-from rigidbench.evaluation import evaluate  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle  # noqa: E402
-from rigidbench.validate import validate_predictions  # noqa: E402
+from rigidbench.preflight import validate_predictions  # noqa: E402
+from rigidbench.stages.evaluate import evaluate  # noqa: E402
+from rigidbench.stages.import_set import import_published  # noqa: E402
 from rigidbench.video import read_video, write_video  # noqa: E402
 
 pytest.importorskip("av")
@@ -139,7 +137,7 @@ def _as_our_renders(data: Path, dst: Path, monkeypatch) -> Path:
     import json
     import shutil
 
-    from rigidbench.pipeline import render
+    from rigidbench.stages import render
 
     shutil.copytree(data, dst)
     for meta_path in (dst / "eval").glob("*/metadata.json"):
@@ -165,7 +163,7 @@ def test_render_redoes_a_bundle_rendered_at_another_preset_and_never_overwrites_
     """Rendering with another --quality into the same data folder used to keep the old bundles silently."""
     from rigidbench import manifest
     from rigidbench.errors import UserError
-    from rigidbench.pipeline.render import rows_to_render
+    from rigidbench.stages.render import rows_to_render
 
     data, _ = copies
     rows = manifest.select(manifest.rows("eval", registry()), list(IDS), None)
@@ -182,7 +180,7 @@ def test_render_redoes_a_bundle_rendered_at_another_preset_and_never_overwrites_
 
 def test_render_renders_a_damaged_bundle_again_and_skips_intact_ones(copies, tmp_path, monkeypatch):
     from rigidbench import manifest
-    from rigidbench.pipeline.render import is_complete, rows_to_render
+    from rigidbench.stages.render import is_complete, rows_to_render
 
     data = _as_our_renders(copies[0], tmp_path / "ours", monkeypatch)
     rows = manifest.select(manifest.rows("eval", registry()), list(IDS), None)

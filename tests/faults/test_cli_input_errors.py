@@ -8,12 +8,11 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import published_set as ps  # noqa: E402
+from fixtures import published_set as ps  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.datasets.importer import import_published  # noqa: E402
+from rigidbench.stages.import_set import import_published  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +77,7 @@ def test_a_configuration_file_that_is_not_utf8(tmp_path, capsys):
 
 @pytest.mark.parametrize("damage", [b'{"id": "00000", "input_k', b"[1, 2]", b"\xff\xfe"])
 def test_a_damaged_score_record_is_scored_again(data, tmp_path, damage):
-    from rigidbench.evaluation import evaluate
+    from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
 
     preds = tmp_path / "preds"
@@ -94,7 +93,7 @@ def test_a_damaged_score_record_is_scored_again(data, tmp_path, damage):
 def test_a_score_made_without_the_first_frame_check_is_not_reused_with_it(data, tmp_path):
     """The first-frame check is a rule, not an input: a record scored with it off is refused (not reused) by a
     later run with it on, and scored again when it is off."""
-    from rigidbench.evaluation import evaluate
+    from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
 
     other = tmp_path / "other"  # the same id in another set: a different scene and camera

@@ -15,7 +15,6 @@ end with a single run's outputs. Two hosted
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -25,14 +24,11 @@ from pathlib import Path
 
 import pytest
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
-sys.path.insert(0, str(FIXTURES))
+from fixtures import child_env, published_set as ps
+from fixtures.toy_stage import ToyStage, calls
 
-import published_set as ps  # noqa: E402
-from toy_stage import ToyStage, calls  # noqa: E402
-
-from rigidbench.config import registry  # noqa: E402
-from rigidbench.driver import (ItemLock, ItemRunner, StageReport, ledger_outcomes, lock_path, read_ledger,  # noqa: E402
+from rigidbench.config import registry
+from rigidbench.driver import (ItemLock, ItemRunner, StageReport, ledger_outcomes, lock_path, read_ledger,
                                run_stage, write_ledger)
 
 IDS = ["00000", "00001", "00002"]
@@ -153,12 +149,11 @@ def test_wait_is_an_option_of_every_stage_and_reaches_the_driver_only_while_its_
 # -- two processes, started together -------------------------------------------------------------------------
 
 TOY_RUN = """
-import json, sys
-sys.path.insert(0, {fixtures!r})
+import json
 from pathlib import Path
 from rigidbench.driver import run_stage
 from rigidbench.executors import ProcessExecutor
-from toy_stage import ToyStage
+from fixtures.toy_stage import ToyStage
 report = run_stage(ToyStage(Path({root!r}), {payloads!r}), executor=ProcessExecutor(workers=2), progress=False,
                    wait=True)
 print(json.dumps(report.to_json()))
@@ -170,9 +165,8 @@ def test_two_waiting_runs_through_child_processes_make_each_example_once(tmp_pat
     made by one of them; skipping without --wait is the evaluate test's below."""
     payloads = {k: {**v, "slow": 0.3} for k, v in PAYLOADS.items()}
     root = tmp_path / "shared"
-    code = TOY_RUN.format(fixtures=str(FIXTURES), root=str(root), payloads=payloads)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FIXTURES), os.environ.get("PYTHONPATH", "")])}
-    runs = together([[sys.executable, "-c", code]] * 2, env=env)
+    code = TOY_RUN.format(root=str(root), payloads=payloads)
+    runs = together([[sys.executable, "-c", code]] * 2, env=child_env())
     reports = []
     for status, stdout, stderr in runs:
         assert status == 0 and "Traceback" not in stderr and "Errno" not in stderr, stderr
@@ -190,8 +184,8 @@ def test_two_waiting_runs_through_child_processes_make_each_example_once(tmp_pat
 @pytest.fixture(scope="module")
 def reference_set(tmp_path_factory):
     """The synthetic published set imported (three examples), and the reference predictor's videos of it."""
-    from rigidbench.datasets.importer import import_published
-    from rigidbench.pipeline.predict import predict
+    from rigidbench.stages.import_set import import_published
+    from rigidbench.stages.predict import predict
     from rigidbench.predictors import PredictContext
 
     root = tmp_path_factory.mktemp("concurrent")
@@ -204,7 +198,8 @@ def reference_set(tmp_path_factory):
 
 EVALUATE = """
 import sys, time
-from rigidbench.evaluation import evaluate, runner
+from rigidbench.stages import evaluate as runner
+from rigidbench.stages.evaluate import evaluate
 from rigidbench.perception.features import FeatureNets
 preds, data, out, scored = sys.argv[1:5]
 real = runner._score_one
@@ -220,7 +215,7 @@ print(len(summary.evaluated), len(summary.reused), len(summary.failed), len(summ
 
 
 def test_two_evaluates_on_one_folder_write_a_single_runs_results(reference_set, tmp_path):
-    from rigidbench.evaluation import evaluate
+    from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
 
     data, preds = reference_set

@@ -15,27 +15,26 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import published_set as ps  # noqa: E402
-from toy_stage import ToyStage  # noqa: E402
+from fixtures import published_set as ps  # noqa: E402
+from fixtures.toy_stage import ToyStage  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
-from rigidbench.datasets.importer import import_published  # noqa: E402
-from rigidbench.driver import ItemResult, Stage, StageWorker, digest, read_ledger, run_stage  # noqa: E402
+from rigidbench.driver import ItemResult, Stage, StageWorker, read_ledger, run_stage
 from rigidbench.errors import BundleError  # noqa: E402
-from rigidbench.evaluation import evaluate  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle  # noqa: E402
+from rigidbench.hashing import digest  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
+from rigidbench.preflight import validate_predictions  # noqa: E402
 from rigidbench.report.load import load_runs  # noqa: E402
-from rigidbench.validate import validate_predictions  # noqa: E402
+from rigidbench.stages.evaluate import evaluate  # noqa: E402
+from rigidbench.stages.import_set import import_published  # noqa: E402
 from rigidbench.video import read_video, write_video  # noqa: E402
 
 pytest.importorskip("av")

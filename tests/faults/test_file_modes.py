@@ -13,17 +13,15 @@ from __future__ import annotations
 
 import os
 import stat
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import published_set as ps  # noqa: E402
-from replicate_server import TOKEN, make_split  # noqa: E402,F401
-from replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
+from fixtures import published_set as ps  # noqa: E402
+from fixtures.replicate_server import TOKEN, make_split  # noqa: E402,F401
+from fixtures.replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
 
 from rigidbench.atomic import atomic_dir  # noqa: E402
 from rigidbench.cli import main  # noqa: E402

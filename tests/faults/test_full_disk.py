@@ -26,12 +26,11 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import published_set as ps  # noqa: E402
+from fixtures import published_set as ps  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.datasets.importer import import_published  # noqa: E402
+from rigidbench.stages.import_set import import_published  # noqa: E402
 
 NO_SPACE = os.strerror(errno.ENOSPC)
 
@@ -237,10 +236,10 @@ def test_a_ledger_entry_that_cannot_be_written_stops_the_stage_wherever_the_exam
     from rigidbench.driver import ledger_path, run_stage
     from rigidbench.errors import UserError
     from rigidbench.executors import make_executor
-    from toy_stage import ToyStage
+    from fixtures import child_env
+    from fixtures.toy_stage import ToyStage
 
-    fixtures = str(Path(__file__).resolve().parents[1] / "fixtures")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([fixtures, os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("PYTHONPATH", child_env()["PYTHONPATH"])  # for the child processes
     payloads = {"a": {"n": 1}, "b": {"n": 2}, "c": {"n": 3}}
     blocked = ledger_path(tmp_path, "toy", "b")
     blocked.mkdir(parents=True)  # a folder where the ledger entry goes: writing it fails with EISDIR

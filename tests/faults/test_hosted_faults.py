@@ -29,14 +29,13 @@ from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
 from rigidbench.folders import GENERATION_FILE, RECORDS_DIR  # noqa: E402
-from rigidbench.pipeline.predict import predict  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
 from rigidbench.predictors.replicate import ReplicateClient  # noqa: E402
+from rigidbench.stages.predict import predict  # noqa: E402
 from rigidbench.video import probe_video  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
-from replicate_server import TOKEN, make_split  # noqa: E402
-from replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
+from fixtures.replicate_server import TOKEN, make_split  # noqa: E402
+from fixtures.replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
 
 MODEL = "veo-3.1"
 FAST_CLIENT = {"request_timeout_s": 5, "poll_interval_s": 0.01, "poll_max_interval_s": 0.02, "max_retries": 3,

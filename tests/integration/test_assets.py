@@ -18,7 +18,7 @@ from rigidbench.blender.assets.objects import build_object, build_ramp  # noqa: 
 from rigidbench.blender.assets.scenes import build_environment  # noqa: E402
 from rigidbench.blender.assets.standin import ramp_mesh  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
-from rigidbench.spec.types import RampShape  # noqa: E402
+from rigidbench.scene_spec.types import RampShape  # noqa: E402
 
 pytestmark = pytest.mark.integration
 

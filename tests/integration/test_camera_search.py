@@ -15,7 +15,7 @@ from rigidbench.blender.assets._mesh import box, to_object  # noqa: E402
 from rigidbench.blender.camera import box_distance, camera_pose, check_view, framing_box, search_camera  # noqa: E402
 from rigidbench.blender.render import build_search_scene  # noqa: E402
 from rigidbench.groundtruth import camera_model as cm  # noqa: E402
-from rigidbench.spec.build import build_scene_spec  # noqa: E402
+from rigidbench.scene_spec.build import build_scene_spec  # noqa: E402
 
 
 def _search(spec, settings, scene, objects, dressing):

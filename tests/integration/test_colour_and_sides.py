@@ -13,7 +13,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from conftest import free_fall_spec, ramp_collision_spec, requires_bpy
+from fixtures.blender import requires_bpy
+from fixtures.scenes import free_fall_spec, ramp_collision_spec
+
 from rigidbench.config import registry as load_registry
 from rigidbench.groundtruth import bundle as B
 

@@ -4,7 +4,7 @@ import json
 import re
 
 import pytest
-from conftest import requires_bpy
+from fixtures.blender import requires_bpy
 
 from rigidbench.cli import main
 

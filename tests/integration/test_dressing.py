@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed; "
                            "run `make test`, which installs it")
 
-from conftest import free_fall_spec, ramp_collision_spec  # noqa: E402
+from fixtures.scenes import free_fall_spec, ramp_collision_spec  # noqa: E402
 
 from rigidbench.blender.physics import FLOOR_NAME, SUPPORT_NAME  # noqa: E402
 from rigidbench.blender.render import build_search_scene  # noqa: E402

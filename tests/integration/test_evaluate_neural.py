@@ -1,25 +1,21 @@
 """`evaluate --perception neural` end to end at the `test` preset, with tiny random models injected."""
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import render_eval_examples, requires_bpy
+from fixtures.blender import render_eval_examples, requires_bpy
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
+from fixtures import tiny_perception  # noqa: E402
 
-import tiny_perception  # noqa: E402
-
-from rigidbench.evaluation import evaluate  # noqa: E402
 from rigidbench.metrics import METRICS  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
-from rigidbench.pipeline.predict import predict  # noqa: E402
+from rigidbench.stages.evaluate import evaluate  # noqa: E402
+from rigidbench.stages.predict import predict  # noqa: E402
 
 pytestmark = [pytest.mark.integration, requires_bpy]
 

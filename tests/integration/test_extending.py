@@ -5,16 +5,16 @@ import json
 
 import numpy as np
 import pytest
-from conftest import render_eval_examples, requires_bpy
+from fixtures.blender import render_eval_examples, requires_bpy
 
-from rigidbench.evaluation import evaluate
+from rigidbench.flows.demo import format_table
 from rigidbench.metrics import METRICS, MetricInfo, MetricResult
 from rigidbench.perception.features import FeatureNets
-from rigidbench.pipeline.demo import format_table
-from rigidbench.pipeline.predict import predict
 from rigidbench.predictors import PREDICTORS, Kind, PredictContext, Predictor, PredictorInfo
 from rigidbench.predictors.image_space import reference
 from rigidbench.report import build_report
+from rigidbench.stages.evaluate import evaluate
+from rigidbench.stages.predict import predict
 
 pytestmark = [pytest.mark.integration, requires_bpy]
 
@@ -103,7 +103,7 @@ def test_the_readme_plugin_example_runs_as_written(data_dir, tmp_path, monkeypat
     from pathlib import Path
 
     from rigidbench.cli import main
-    from rigidbench.validate import validate_predictions
+    from rigidbench.preflight import validate_predictions
     from rigidbench.video import read_video
 
     readme = (Path(__file__).parents[2] / "README.md").read_text()

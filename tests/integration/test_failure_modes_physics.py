@@ -8,19 +8,19 @@ import math
 
 import numpy as np
 import pytest
-from conftest import ate3d_floor, render_eval_examples, requires_bpy
+from fixtures.blender import ate3d_floor, render_eval_examples, requires_bpy
 
-from rigidbench.evaluation import evaluate
 from rigidbench.evaluation.scoring import tracked_points_world
+from rigidbench.groundtruth.bundle import Sample
 from rigidbench.groundtruth.camera_model import project
 from rigidbench.perception.features import FeatureNets
-from rigidbench.groundtruth.bundle import Sample
-from rigidbench.predictors.counterfactuals import MAX_DEPTH_OFFSET_M, depth_offsets
-from rigidbench.pipeline.predict import write_prediction
-from rigidbench.predictors import PREDICTORS, PredictContext
-from rigidbench.predictors.identity_swap import prediction_from_swapped
 from rigidbench.perception.gt import WorldState, reference_state, state_path
-from rigidbench.pipeline.predict import predict
+from rigidbench.predictors import PREDICTORS, PredictContext
+from rigidbench.predictors.counterfactuals import MAX_DEPTH_OFFSET_M, depth_offsets
+from rigidbench.predictors.identity_swap import prediction_from_swapped
+from rigidbench.stages.evaluate import evaluate
+from rigidbench.stages.predict import write_prediction
+from rigidbench.stages.predict import predict
 from rigidbench.video import read_video
 
 pytestmark = [pytest.mark.integration, requires_bpy]

@@ -3,31 +3,27 @@ tiny randomly initialised pipeline of the model's class -> validate -> evaluate 
 perception models. CPU, no network, no weights."""
 
 import json
-import sys
-from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
 import pytest
-from conftest import render_eval_examples, requires_bpy
+from fixtures.blender import render_eval_examples, requires_bpy
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
-
-import tiny_perception  # noqa: E402
-import tiny_video_models as tiny  # noqa: E402
+from fixtures import tiny_perception  # noqa: E402
+from fixtures import tiny_video_models as tiny  # noqa: E402
 
 from rigidbench.benchmark import NEGATIVE_PROMPT  # noqa: E402
-from rigidbench.evaluation import evaluate  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample  # noqa: E402
 from rigidbench.metrics import METRICS  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
-from rigidbench.pipeline.predict import predict  # noqa: E402
 from rigidbench.predictors import PredictContext, example_seed, model_inputs  # noqa: E402
-from rigidbench.validate import validate_predictions  # noqa: E402
+from rigidbench.preflight import validate_predictions  # noqa: E402
+from rigidbench.stages.evaluate import evaluate  # noqa: E402
+from rigidbench.stages.predict import predict  # noqa: E402
 from rigidbench.video import probe_video  # noqa: E402
 
 pytestmark = [pytest.mark.integration, requires_bpy]

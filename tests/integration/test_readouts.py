@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import requires_bpy
+from fixtures.blender import requires_bpy
 
 from rigidbench import manifest
 from rigidbench.config import registry as load_registry
@@ -37,7 +37,7 @@ def reg():
 
 @pytest.fixture(scope="module")
 def samples(reg, tmp_path_factory):
-    from rigidbench.pipeline.render import render_to_bundle
+    from rigidbench.stages.render import render_to_bundle
 
     root = tmp_path_factory.mktemp("data")
     rows = {r.sample_id: r for r in manifest.eval_rows(reg)}

@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import make_spec, object_body, ramp_body, requires_bpy
+from fixtures.blender import requires_bpy
+from fixtures.scenes import make_spec, object_body, ramp_body
+
 from rigidbench import manifest
 from rigidbench.blender.camera import framing
 from rigidbench.config import registry as load_registry
@@ -30,7 +32,7 @@ from rigidbench.groundtruth import bundle as B
 from rigidbench.groundtruth import camera_model as cm
 from rigidbench.groundtruth.contacts import quat_to_matrix
 from rigidbench.groundtruth.tracks import erode_cross
-from rigidbench.spec.types import CameraSpec
+from rigidbench.scene_spec.types import CameraSpec
 
 pytestmark = [pytest.mark.integration, requires_bpy]
 
@@ -84,7 +86,7 @@ def task_rows(reg):
 @pytest.fixture(scope="module")
 def rendered(reg, task_rows, tmp_path_factory):
     """task -> (bundle path, ray casts at the first and last frame)."""
-    from rigidbench.pipeline.render import render_to_bundle
+    from rigidbench.stages.render import render_to_bundle
 
     data = tmp_path_factory.mktemp("data")
     out = {}
@@ -297,7 +299,7 @@ def test_show_writes_contact_sheet(rendered, tmp_path):
 
 
 def test_rerun_skips_complete_bundles(rendered, reg, task_rows):
-    from rigidbench.pipeline.render import render_rows
+    from rigidbench.stages.render import render_rows
 
     path, _ = rendered["free_fall"]
     before = (path / B.METADATA_FILE).stat().st_mtime_ns
@@ -318,7 +320,7 @@ def _children(pid: int) -> list[int]:
 def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows, tmp_path):
     """Kill the worker mid-render: the run reports the example as failed and leaves no bundle; a
     rerun renders it completely, identical to the first render (RGB within one level)."""
-    from rigidbench.pipeline.render import render_rows
+    from rigidbench.stages.render import render_rows
 
     row = task_rows["ball_chain"]
     data = tmp_path / "data"
@@ -329,7 +331,7 @@ def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows
         from pathlib import Path
         from rigidbench import manifest
         from rigidbench.config import registry
-        from rigidbench.pipeline.render import render_rows
+        from rigidbench.stages.render import render_rows
         reg = registry()
         rows = manifest.select(manifest.rows("eval", reg), ["{row.sample_id}"])
         done, failures = render_rows(rows, reg, Path(r"{data}"), quality="{QUALITY}", progress=False)
@@ -384,7 +386,7 @@ def test_failing_example_is_reported_and_the_others_continue(reg, task_rows, tmp
     import yaml
 
     from rigidbench.config import PACKAGE_CONFIG_DIR
-    from rigidbench.pipeline.render import render_rows
+    from rigidbench.stages.render import render_rows
 
     bad, good = task_rows["bounce"], task_rows["free_fall"]
     assert bad.scene != good.scene

@@ -23,15 +23,16 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import requires_bpy
+from fixtures.blender import requires_bpy
+
 from rigidbench import manifest
 from rigidbench.cli import main
 from rigidbench.config import PACKAGE_CONFIG_DIR, registry as load_registry
 from rigidbench.driver import ledger_path, read_ledger, staging_path
 from rigidbench.executors import LocalExecutor, ProcessExecutor
 from rigidbench.groundtruth import bundle as B
-from rigidbench.pipeline.render import RenderStage, render_rows, render_stage
-from rigidbench.pipeline.simulate import SimulateStage, simulate_rows, simulate_stage
+from rigidbench.stages.render import RenderStage, render_rows, render_stage
+from rigidbench.stages.simulate import SimulateStage, simulate_rows, simulate_stage
 
 pytestmark = [pytest.mark.integration, requires_bpy]
 

@@ -6,16 +6,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import render_eval_examples, requires_bpy
+from fixtures import TESTS_DIR
+from fixtures.blender import render_eval_examples, requires_bpy
 
 from rigidbench import manifest
 from rigidbench.config import registry
-from rigidbench.evaluation import evaluate
 from rigidbench.executors import RayExecutor, Shard
-from rigidbench.pipeline.predict import predict
-from rigidbench.pipeline.render import render_rows
 from rigidbench.predictors import PREDICTORS, Kind, PredictContext, Predictor, PredictorInfo
 from rigidbench.predictors.image_space import reference
+from rigidbench.stages.evaluate import evaluate
+from rigidbench.stages.predict import predict
+from rigidbench.stages.render import render_rows
 
 ray = pytest.importorskip("ray", reason="the Ray tests need the [ray] extra")
 pytestmark = [pytest.mark.integration, requires_bpy]
@@ -26,8 +27,9 @@ HERE = Path(__file__).parent
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A local Ray cluster: 2 CPUs and one logical GPU; workers can import this test module."""
-    pythonpath = os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])
+    """A local Ray cluster: 2 CPUs and one logical GPU; workers can import this test module (and the fixtures
+    package it imports)."""
+    pythonpath = os.pathsep.join([str(HERE), str(TESTS_DIR), os.environ.get("PYTHONPATH", "")])
     ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False,
              runtime_env={"env_vars": {"PYTHONPATH": pythonpath, "RIGIDBENCH_TEST_DIR": str(HERE)}})
     yield

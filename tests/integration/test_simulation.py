@@ -11,11 +11,13 @@ import textwrap
 import numpy as np
 import pytest
 
-from conftest import (SUPPORT_TOP_M, ball_chain_spec, bounce_spec, drop_into_cluster_spec, free_fall_spec,
-                      make_spec, ramp_collision_spec, requires_bpy, resting)
+from fixtures.blender import requires_bpy
+from fixtures.scenes import (SUPPORT_TOP_M, ball_chain_spec, bounce_spec, drop_into_cluster_spec, free_fall_spec,
+                             make_spec, ramp_collision_spec, resting)
+
 from rigidbench.groundtruth.contacts import quat_to_matrix
 from rigidbench.groundtruth.trajectory import Trajectory, load_contacts
-from rigidbench.spec.types import SceneSpec
+from rigidbench.scene_spec.types import SceneSpec
 
 pytestmark = pytest.mark.integration
 
@@ -250,7 +252,7 @@ def test_same_spec_is_bitwise_identical_across_processes(reg, tmp_path):
         import sys
         from pathlib import Path
         from rigidbench.blender.physics import simulate_to_dir
-        from rigidbench.spec.types import SceneSpec
+        from rigidbench.scene_spec.types import SceneSpec
         spec = SceneSpec.from_json(Path(sys.argv[1]).read_text())
         simulate_to_dir(spec, sys.argv[2])
     """)

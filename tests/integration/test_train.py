@@ -12,7 +12,7 @@ from types import MappingProxyType
 
 import pytest
 
-from conftest import render_train_examples, requires_bpy
+from fixtures.blender import render_train_examples, requires_bpy
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")

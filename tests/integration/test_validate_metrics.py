@@ -4,7 +4,7 @@ import csv
 import json
 
 import pytest
-from conftest import render_eval_examples, requires_bpy
+from fixtures.blender import render_eval_examples, requires_bpy
 
 from rigidbench.perception.features import FeatureNets
 from rigidbench.validation import validate_metrics

@@ -75,7 +75,7 @@ def test_world_to_camera_cv_is_inverse_pose_with_flip():
 
 from rigidbench.blender import camera as bcam  # noqa: E402  (imports no bpy)
 from rigidbench.config import CameraSettings  # noqa: E402
-from rigidbench.spec.types import Body, BodyPhysics, SceneSpec, SimSpec, SupportSpec  # noqa: E402
+from rigidbench.scene_spec.types import Body, BodyPhysics, SceneSpec, SimSpec, SupportSpec  # noqa: E402
 
 
 def _spec(positions, rotation_deg=0.0, size=(0.1, 0.1, 0.1)):

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from rigidbench.config import registry
+from rigidbench.predictors import PREDICTORS, FailureMode, Kind
 from rigidbench.predictors.counterfactuals import (depth_offsets, friction_change, gravity_change, mass_change,
                                                restitution_change)
-from rigidbench.predictors import PREDICTORS, FailureMode, Kind
 from rigidbench.predictors.identity_swap import DONORS, blend_inside_masks, donor_for
-from rigidbench.spec.types import Body, BodyPhysics, SceneSpec, SimSpec, SupportSpec
+from rigidbench.scene_spec.types import Body, BodyPhysics, SceneSpec, SimSpec, SupportSpec
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
 

@@ -1,6 +1,6 @@
 """Where `rigidbench --config DIR download` looks for a dataset description: DIR/datasets/<id>.yaml, and an
 "unknown dataset" error that says so (a file directly in DIR is not read). The download through such a
-directory runs in tests/unit/test_no_secret_in_logs.py."""
+directory runs in tests/servers/test_no_secret_in_logs.py."""
 
 from pathlib import Path
 

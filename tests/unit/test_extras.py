@@ -22,15 +22,11 @@ import pytest
 
 from rigidbench import extras
 from rigidbench.errors import MissingExtra
-from test_import_graph import import_statements, module_name, our_files
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
-
-import published_set as ps  # noqa: E402
-from dataset_server import StandInDatasetServer, split, write_description  # noqa: E402
+from contract.test_import_graph import import_statements, module_name, our_files
+from fixtures import TESTS_DIR, published_set as ps
+from fixtures.dataset_server import StandInDatasetServer, split, write_description
 
 PYPROJECT = Path(__file__).resolve().parents[2] / "pyproject.toml"
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 #: the import name of each core dependency of pyproject.toml
 CORE_IMPORTS = {"numpy": "numpy", "yaml": "pyyaml", "pymunk": "pymunk", "scipy": "scipy", "tqdm": "tqdm",
                 "PIL": "pillow"}
@@ -113,7 +109,9 @@ def test_the_message_names_the_package_the_purpose_and_the_extra():
         "aligning videos needs opencv-python-headless (cv2), which is not installed: pip install 'rigidbench[score]'")
     assert extras.message("torch", "x", importer="rigidbench.train.trainer").endswith("rigidbench[train]'")
     assert extras.message("torch", "x", importer="rigidbench.perception.sam2").endswith("rigidbench[score]'")
-    assert extras.message("bpy", "x", importer="rigidbench.probe.extract").endswith("rigidbench[sim]'")  # not in train
+    assert extras.message("torch", "x", importer="rigidbench.stages.probe_extract").endswith("rigidbench[train]'")
+    # bpy is not in train: its own extra
+    assert extras.message("bpy", "x", importer="rigidbench.stages.probe_extract").endswith("rigidbench[sim]'")
     assert extras.message("ray", "x", importer="rigidbench.train.trainer").endswith("rigidbench[ray]'")
 
 
@@ -157,7 +155,8 @@ def run_hidden(hidden, commands, cwd: Path, extra_code: str = "") -> list[dict]:
     ``hidden`` cannot be imported; a traceback fails the test. Returns [{rc, err}] per command."""
     env = {k: v for k, v in os.environ.items()  # no weights from this machine's caches, no proxy for the stand-in
            if not k.startswith(("RIGIDBENCH_", "HF_", "TRANSFORMERS_")) and "proxy" not in k.lower()}
-    env.update(HF_HOME=str(cwd / "hf"), TORCH_HOME=str(cwd / "torch"), XDG_CACHE_HOME=str(cwd / "cache"))
+    env.update(HF_HOME=str(cwd / "hf"), TORCH_HOME=str(cwd / "torch"), XDG_CACHE_HOME=str(cwd / "cache"),
+               PYTHONPATH=os.pathsep.join(p for p in (str(TESTS_DIR), env.get("PYTHONPATH", "")) if p))
     proc = subprocess.run([sys.executable, "-c", RUNNER.replace("EXTRA", extra_code), json.dumps(sorted(hidden)),
                            json.dumps(commands)], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -212,8 +211,8 @@ def test_score_runs_the_scoring_commands_without_the_other_extras(published, tmp
               ["predict", "wan-2.2", "--data", "data", "--out", "wan", "--limit", "1"],
               ["predict", "reference", "--data", "data", "--out", "ray", "--executor", "ray"]]
     perceive = f"""
-sys.path.insert(0, {str(FIXTURES)!r})
-import numpy as np, tiny_perception
+import numpy as np
+from fixtures import tiny_perception
 from pathlib import Path
 from rigidbench.perception.neural import NeuralBackend
 from rigidbench.video import Video

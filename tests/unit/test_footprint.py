@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rigidbench.spec import footprint
+from rigidbench.scene_spec import footprint
 
 sizes = st.floats(0.01, 3.0)
 

@@ -22,9 +22,8 @@ from rigidbench.predictors import (PREDICTORS, CosmosOptions, HostedOptions, Kin
 from rigidbench.predictors import local, wan
 from rigidbench.predictors.options import LEGACY_FLAGS, LocalOptions, option, option_specs
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import tiny_video_models as tiny  # noqa: E402
+from fixtures import tiny_video_models as tiny  # noqa: E402
 
 WAN, COSMOS, VEO, STATIC = (PREDICTORS[n] for n in ("wan-2.2", "cosmos-2.5", "veo-3.1", "static"))
 WAN_PUBLIC = ("offload, tiled_vae, model_path, revision, height, width, num_frames, steps, guidance_scale, fps, "

@@ -1,7 +1,6 @@
 """The neural backend end to end on tiny random models: outputs, visibility, caching, errors."""
 
 import logging
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
-
-import tiny_perception  # noqa: E402
+from fixtures import tiny_perception  # noqa: E402
 
 from rigidbench.metrics.background import detect_background_corners  # noqa: E402
 from rigidbench.perception.base import PerceptionError, get_backend  # noqa: E402

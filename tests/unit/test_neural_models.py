@@ -1,8 +1,6 @@
 """The neural perception models one by one: device choice, SAM 2.1 masks, CoTracker queries and tracks."""
 
 import logging
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,9 +8,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
-
-import tiny_perception  # noqa: E402
+from fixtures import tiny_perception  # noqa: E402
 
 from rigidbench.perception import device as device_mod  # noqa: E402
 from rigidbench.perception import sam2  # noqa: E402

@@ -1,8 +1,6 @@
 """Weights registry, `rigidbench weights`, missing-weight messages and the loading rules (env / cache)."""
 
-import argparse
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -10,10 +8,10 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
+from fixtures import tiny_perception  # noqa: E402
 
-import tiny_perception  # noqa: E402
-
+from rigidbench.cli import build_parser  # noqa: E402
+from rigidbench.commands.scoring import cmd_weights  # noqa: E402
 from rigidbench.errors import UserError  # noqa: E402
 from rigidbench.perception import weights  # noqa: E402
 from rigidbench.perception.features import WeightsUnavailable  # noqa: E402
@@ -33,9 +31,7 @@ def empty_caches(tmp_path, monkeypatch):
 
 
 def run_cmd(argv, capsys):
-    parser = argparse.ArgumentParser()
-    weights.add_arguments(parser)
-    code = weights.cmd_weights(parser.parse_args(argv))
+    code = cmd_weights(build_parser().parse_args(["weights", *argv]))
     out = capsys.readouterr()
     return code, out.out, out.err
 
@@ -215,7 +211,7 @@ def test_feature_nets_load_from_overrides_or_are_skipped_with_the_message(tmp_pa
 
 def test_evaluate_stops_before_any_example_when_neural_weights_are_missing(tmp_path, monkeypatch):
     from rigidbench.errors import EvaluationError
-    from rigidbench.evaluation import evaluate
+    from rigidbench.stages.evaluate import evaluate
 
     ckpt = tmp_path / "vda.pth"
     ckpt.write_bytes(b"present")

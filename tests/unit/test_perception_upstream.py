@@ -16,7 +16,6 @@ Upstream behaviour checked here (read from the sources, not from our modules):
 """
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,9 +27,8 @@ pytest.importorskip("cv2")
 
 import torch.nn.functional as F  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import tiny_perception  # noqa: E402
+from fixtures import tiny_perception  # noqa: E402
 
 from rigidbench.metrics.background import detect_background_corners  # noqa: E402
 from rigidbench.perception.cotracker import VISIBILITY_THRESHOLD, track_points  # noqa: E402

@@ -11,10 +11,10 @@ torch = pytest.importorskip("torch")
 from rigidbench.probe.fit import ProbeSettings, fit_cell, r2_score, roc_auc, train_probe  # noqa: E402
 from rigidbench.probe.inlp import (inlp, project_out, random_orthonormal, ridge_fit, split_rows,  # noqa: E402
                                    total_variance, variance_matched_alpha, variance_matched_pcs)
-from rigidbench.probe.intervene import fit_bases  # noqa: E402
 from rigidbench.probe.pooling import (max_pool_to_grid, n_slots, pool_actors, pooling_matrix,  # noqa: E402
                                       slot_frames, slot_token_masks)
 from rigidbench.probe.targets import slot_targets  # noqa: E402
+from rigidbench.stages.probe_bases import fit_bases  # noqa: E402
 
 # the paper's optimiser, with smaller batches so that the few thousand synthetic rows get enough steps
 FAST = ProbeSettings(epochs=20, batch_size=128, lr=1e-3, seed=0)

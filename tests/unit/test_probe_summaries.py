@@ -12,8 +12,8 @@ import itertools
 import numpy as np
 import pytest
 
-from rigidbench.probe.intervene import READOUTS, VARIANTS, summarize
 from rigidbench.probe.report import probe_tables, write_report
+from rigidbench.stages.probe_intervene import READOUTS, VARIANTS, summarize
 
 CELLS = [(0, 0.3), (0, 0.7), (1, 0.3), (1, 0.7)]
 CLIPS = {"c0": CELLS, "c1": CELLS, "c2": CELLS[:1], "c3": CELLS}

@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rigidbench.commands.scoring import cmd_report
 from rigidbench.evaluation import aggregate
 from rigidbench.metrics import METRICS
-from rigidbench.report import ReportError, build_report, cmd_report, load_runs
+from rigidbench.report import ReportError, build_report, load_runs
 from rigidbench.report.analysis import analyse, choose_baseline, rank_marks
 from rigidbench.report.tables import to_latex, to_markdown
 from rigidbench.stats import bootstrap_ci, paired_difference, probability_of_improvement

@@ -4,23 +4,20 @@ runs evaluated on the synthetic published set (no Blender)."""
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 
-import published_set as ps  # noqa: E402
+from fixtures import published_set as ps  # noqa: E402
 
-from rigidbench.datasets.importer import import_published  # noqa: E402
-from rigidbench.evaluation import evaluate  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
-from rigidbench.pipeline.predict import predict  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
 from rigidbench.report import build_report  # noqa: E402
 from rigidbench.report.readouts import panel_values, readout_section  # noqa: E402
+from rigidbench.stages.evaluate import evaluate  # noqa: E402
+from rigidbench.stages.import_set import import_published  # noqa: E402
+from rigidbench.stages.predict import predict  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 
 from rigidbench.rotations import (quat_about_y, quat_about_z, quat_canonical, quat_conjugate, quat_continuous,
                                   quat_log_vec, quat_mul, quat_to_matrix)
-from rigidbench.spec.types import quat_mul as spec_quat_mul
+from rigidbench.scene_spec.types import quat_mul as spec_quat_mul
 
 
 def test_products_rotations_and_matrices_agree():

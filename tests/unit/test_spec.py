@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 
 from rigidbench import manifest
 from rigidbench.config import registry
-from rigidbench.spec import cluster, footprint
-from rigidbench.spec.build import SpecError, body_aabb, build_scene_spec, indefinite, make_prompt
-from rigidbench.spec.types import SceneSpec
+from rigidbench.scene_spec import cluster, footprint
+from rigidbench.scene_spec.build import SpecError, body_aabb, build_scene_spec, indefinite, make_prompt
+from rigidbench.scene_spec.types import SceneSpec
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_every_eval_row_builds_and_round_trips_through_json(rows, reg):
 
 def test_same_seed_same_spec_in_another_process(rows, reg):
     code = ("from rigidbench import manifest; from rigidbench.config import registry; "
-            "from rigidbench.spec.build import build_scene_spec; r = registry(); "
+            "from rigidbench.scene_spec.build import build_scene_spec; r = registry(); "
             "print(build_scene_spec(manifest.eval_rows(r)[42], r).to_json())")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert out.strip() == build_scene_spec(rows[42], reg).to_json()

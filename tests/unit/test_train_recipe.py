@@ -262,7 +262,7 @@ def test_preprocess_keeps_the_padding_rows_and_resizes_like_pil_by_default():
 
     from rigidbench.train import models
     from rigidbench.train import tiny as tiny_models
-    from rigidbench.train.preprocess import resize_frame
+    from rigidbench.stages.preprocess import resize_frame
 
     tokenizer, encoder = tiny_models.tiny_tokenizer(), tiny_models.tiny_text_encoder()
     [(rows, n)] = models.encode_prompts_padded(tokenizer, encoder, ["A ball falls."], 20)

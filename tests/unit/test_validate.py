@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from rigidbench.validate import (ERROR, WARNING, ValidationReport, format_report, main, read_reference_specs,
-                                 validate_predictions)
+from rigidbench.preflight import (ERROR, WARNING, ValidationReport, format_report, main, read_reference_specs,
+                                  validate_predictions)
 from rigidbench.video import write_video
 
 pytest.importorskip("av")
@@ -21,7 +21,7 @@ def metadata_only_references(monkeypatch):
     """The reference stand-ins here hold only metadata.json (and a first frame): the checks of the
     predictions are under test, so the bundle check of each reference (validate.check_reference) is off.
     Damaged reference bundles are tested in tests/faults/test_bundle_faults.py."""
-    monkeypatch.setattr("rigidbench.validate.check_reference", lambda bundle_dir, report: None)
+    monkeypatch.setattr("rigidbench.preflight.check_reference", lambda bundle_dir, report: None)
 
 
 def clip(n_frames: int, size=(64, 36)) -> np.ndarray:

@@ -3,5 +3,5 @@ procedural objects and furnished scenes (``blender.assets``).
 
 Importing this package imports nothing; ``bpy`` is loaded by the functions that need it
 (``session.import_bpy``), so ``rigidbench`` works without Blender until a simulation runs. No module
-outside this package imports bpy (tests/unit/test_import_graph.py checks it).
+outside this package imports bpy (tests/contract/test_import_graph.py checks it).
 """

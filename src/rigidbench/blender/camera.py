@@ -39,8 +39,8 @@ import numpy as np
 
 from ..config import CameraSettings
 from ..groundtruth import camera_model as cm
-from ..spec.build import body_aabb
-from ..spec.types import CameraSpec, SceneSpec
+from ..scene_spec.build import body_aabb
+from ..scene_spec.types import CameraSpec, SceneSpec
 
 log = logging.getLogger(__name__)
 

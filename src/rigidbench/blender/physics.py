@@ -45,7 +45,7 @@ from ..errors import SpecError
 from ..groundtruth.contacts import contact_pairs, convex_hull, detect_contacts
 from ..groundtruth.trajectory import Contact, Trajectory, save_contacts
 from ..rotations import quat_about_z
-from ..spec.types import Body, BodyPhysics, SceneSpec
+from ..scene_spec.types import Body, BodyPhysics, SceneSpec
 from .assets.collision import MAX_HULL_VERTICES, hull_mesh
 from .assets.objects import object_vertices
 from .assets.standin import Mesh, box, ramp_mesh

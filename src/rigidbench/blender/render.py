@@ -35,7 +35,7 @@ from ..atomic import atomic_dir
 from ..config import RenderPreset, Registry
 from ..groundtruth import bundle as B
 from ..groundtruth.writer import write_bundle
-from ..spec.types import SceneSpec
+from ..scene_spec.types import SceneSpec
 from . import physics
 from .assets import objects as asset_objects, scenes as asset_scenes
 from .camera import add_camera, search_camera

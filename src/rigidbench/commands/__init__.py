@@ -4,7 +4,7 @@ A command is a ``Command``: its name, help, a function adding its own arguments,
 (declared once here: which examples, which reference data, which executor, which model options) and its
 run function, ``"module:function"`` taking ``(args, ctx)``, imported only when the command runs so that
 ``rigidbench --help`` stays instant. The command modules (``commands.data``, ``commands.models``,
-``commands.scoring``, ``train.commands``, ``probe.commands``) each export ``COMMANDS``; ``cli.py`` builds the
+``commands.scoring``, ``commands.training``, ``commands.probing``) each export ``COMMANDS``; ``cli.py`` builds the
 parser from them in order. This package is the command line: like ``cli.py`` it imports the stages it runs
 lazily, inside the run functions.
 """

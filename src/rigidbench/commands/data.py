@@ -1,12 +1,15 @@
-"""Commands that make reference data: download, import, manifest, simulate, render, show, inputs."""
+"""Commands that make reference data: download, import, manifest, simulate, render, show, inputs (their stages,
+imported when a command runs: ``stages.import_set``, ``stages.simulate``, ``stages.render``)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
-from ..argtypes import IdList, output_file, output_folder, positive_int, writable
+from ..argtypes import IdList, output_file, output_folder, positive_int, split_ids, writable
 from ..context import RunContext
 from ..errors import UserError
 from . import DEFAULT_DATA, Command, output_dir, selected_ids, split_dir
@@ -32,6 +35,117 @@ def _import_arguments(p: argparse.ArgumentParser) -> None:
     _published_arguments(p)
     p.add_argument("--dataset", help="which published set this is: an archive is checked against its MD5, and the "
                                      "bundles record it (default: the newest described)")
+
+
+def _finish(summary, data: Path) -> int:
+    """Print what the import did, write DATA/inputs.jsonl; exit status 1 when a sample failed."""
+    from ..benchmark import write_inputs
+
+    print(f"imported {len(summary.imported)} samples, {len(summary.unchanged)} unchanged, {len(summary.failed)} failed "
+          f"-> {summary.split_dir}")
+    for sample_id, reason in summary.failed.items():
+        print(f"  FAILED {sample_id}: {reason}")
+    if summary.imported or summary.unchanged:
+        inputs = write_inputs(data)
+        print(f"model inputs: {inputs}")
+        print(f"next: generate one video per line of {inputs} into predictions/MODEL/<id>.mp4, then "
+              f"`rigidbench validate predictions/MODEL --data {data}` and "
+              f"`rigidbench evaluate predictions/MODEL --data {data} --perception neural`")
+    return 1 if summary.failed else 0
+
+
+def _say_deletable(folder: Path, extra: str = "") -> None:
+    from ..datasets.archive import unshared_bytes
+    from ..datasets.datadir import format_bytes
+
+    print(f"{folder}: the bundles need nothing from it (frames and video are hard-linked or copied); deleting it "
+          f"frees {format_bytes(unshared_bytes(folder))}{extra}")
+
+
+def _imported_earlier(desc, data: Path) -> list[str] | None:
+    """The samples a complete import of this download made, when they are all still in DATA/eval; else None."""
+    from ..datasets.archive import IMPORTED
+    from ..datasets.download import download_dir
+
+    try:
+        record = json.loads((download_dir(desc, data) / IMPORTED).read_text())
+        ids = [str(i) for i in record["ids"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    for sample_id in ids:
+        try:
+            meta = json.loads((data / "eval" / sample_id / "metadata.json").read_text())
+        except (OSError, ValueError):
+            return None
+        if (meta.get("source") or {}).get("md5") != desc.md5:
+            return None
+    return ids or None
+
+
+def cmd_download(args, ctx) -> int:
+    from ..benchmark import write_inputs
+    from ..datasets.archive import BY_DOWNLOAD, IMPORTED, NO_VERIFY, dataset_identity
+    from ..datasets.datadir import data_lock, prepare_data_dir
+    from ..datasets.describe import load_dataset
+    from ..datasets.download import download_dataset, download_dir, extracted_dir, read_marker
+    from ..jsonio import write_json
+    from ..stages.import_set import import_published
+
+    desc = load_dataset(args.dataset, ctx.config_dirs)
+    data = prepare_data_dir(args.data)
+    print(f"{desc.name} {desc.version}: {desc.size_bytes / 1e9:.1f} GB in {len(desc.parts)} parts ({desc.licence}"
+          f"{', doi:' + desc.doi if desc.doi else ''})")
+    with data_lock(data):
+        if read_marker(desc, data) is not None and not extracted_dir(desc, data).is_dir():
+            done = _imported_earlier(desc, data)
+            if done is not None:
+                print(f"{desc.id}: downloaded and imported before ({len(done)} samples in {data / 'eval'}); its "
+                      "extraction was deleted since, so nothing is fetched")
+                print(f"model inputs: {write_inputs(data)}")
+                return 0
+        extracted = download_dataset(desc, data, keep_archive=args.keep_archive, verify=not args.no_verify)
+        verified = bool((read_marker(desc, data) or {}).get("md5_verified"))
+        summary = import_published(extracted, data, dataset=dataset_identity(desc, verified,
+                                                                             BY_DOWNLOAD if verified else NO_VERIFY),
+                                   registry=ctx.registry, config_dirs=ctx.config_dirs, replace=args.replace)
+        status = _finish(summary, data)
+        if summary.ok:
+            write_json(download_dir(desc, data) / IMPORTED, {
+                "id": desc.id, "md5": desc.md5, "ids": sorted(summary.imported + summary.unchanged),
+                "imported_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+            _say_deletable(extracted, "; `rigidbench download` will not fetch the archive again for it")
+        return status
+
+
+def cmd_import(args, ctx) -> int:
+    from ..datasets.archive import (BY_IMPORT, archive_parts, dataset_identity, extract_checked,
+                                   folder_verification)
+    from ..datasets.datadir import data_lock, prepare_data_dir
+    from ..datasets.describe import load_dataset
+    from ..stages.import_set import import_published
+
+    src = Path(args.src)
+    if not src.exists():
+        raise UserError(f"{src}: no such file or folder")
+    desc = load_dataset(args.dataset, ctx.config_dirs)
+    parts = archive_parts(src)
+    data = prepare_data_dir(args.data)
+    with data_lock(data):
+        if parts is not None:
+            src = extract_checked(parts, desc, data)
+            verified, verification = True, BY_IMPORT
+        else:
+            verified, verification = folder_verification(src, desc, data)
+        summary = import_published(src, data, dataset=dataset_identity(desc, verified, verification),
+                                   registry=ctx.registry, config_dirs=ctx.config_dirs, ids=selected_ids(args),
+                                   limit=args.limit, replace=args.replace)
+        status = _finish(summary, data)
+        if not verified:
+            print(f"note: the set's MD5 was not checked ({verification}); results on it are not official: import "
+                  "its .tar.gz or parts, or download it, to check it")
+        if summary.ok and parts is not None:
+            _say_deletable(src)
+        return status
 
 
 def _manifest_arguments(p: argparse.ArgumentParser) -> None:
@@ -64,7 +178,7 @@ def manifest_rows(args, ctx: RunContext):
 
 
 def cmd_simulate(args, ctx: RunContext) -> int:
-    from ..pipeline.simulate import simulate_rows
+    from ..stages.simulate import simulate_rows
 
     out = output_dir(args.out or DEFAULT_DATA / args.split)
     rows = manifest_rows(args, ctx)
@@ -96,6 +210,99 @@ def _show_arguments(p: argparse.ArgumentParser) -> None:
                                             "<split>_<id>_contact_sheet.png here)")
 
 
+def _settings_changed(why: str) -> bool:
+    from ..stages.render import SETTINGS_CHANGED
+
+    return why == SETTINGS_CHANGED or why.startswith("the bundle was rendered at")
+
+
+def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
+    from .. import manifest
+    from ..blender.session import bpy_available
+    from ..driver import Selection
+    from ..executors import RayExecutor
+    from ..extras import missing
+    from ..groundtruth import bundle as B
+    from ..stages.render import RenderStage, render_stage, render_threads
+
+    reg = ctx.registry
+    candidates = manifest.rows(args.split, reg)
+    selection = Selection.of(selected_ids(args), args.limit, getattr(args, "shard", None))
+    selection.apply([r.sample_id for r in candidates], f"the {args.split} manifest")  # unknown ids: fail first
+    if args.quality not in reg.presets:
+        raise UserError(f"unknown quality '{args.quality}'; presets: {', '.join(reg.presets)}")
+    data = Path(args.data)
+    writable(data, "--data")
+    if not bpy_available():
+        raise missing("bpy", "rendering (Blender as a Python module, bpy 4.5 on Python 3.11)")
+    if B.bundle_dirs(data):
+        raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
+                        f"DATA/<split>/; did you mean --data {data.parent}?")
+    threads = render_threads(args.workers)
+    stage = RenderStage(data, args.split, candidates, reg, args.quality, args.device, threads, ctx.config_dirs)
+    executor = None
+    if getattr(args, "executor", "local") == "ray":
+        executor = RayExecutor(address=args.ray_address, workers=args.workers if args.workers > 1 else None)
+    report = render_stage(stage, selection, executor, workers=args.workers, quiet=not getattr(args, "verbose", False),
+                          progress=not getattr(args, "no_progress", False))
+    print(f"rendered {len(report.ran)}, skipped {len(report.reused)} complete, failed {len(report.failed)} of "
+          f"{len(report.selected)} {args.split} examples ({args.quality}) into {stage.root}")
+    changed = [i for i in report.ran if _settings_changed(report.redone.get(i, ""))]
+    if changed:
+        shown = ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else "")
+        print(f"  {len(changed)} of them had been rendered with other settings (preset or configuration) and were "
+              f"rendered again: {shown}")
+    for sample_id, reason in report.failed.items():
+        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
+    if report.interrupted:
+        print(f"  {len(report.interrupted)} examples were not started", file=sys.stderr)
+    if report.failed:
+        print("rerun the same command to retry the failed examples; complete bundles are kept", file=sys.stderr)
+    return 1 if report.failed or report.interrupted else 0
+
+
+def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:
+    """One contact sheet per id; an example whose bundle is missing or damaged is reported (naming the file
+    and what to do) and the others are still written. Exit 1 when any failed."""
+    from ..errors import EXAMPLE_ERRORS
+    from ..groundtruth import bundle as B
+    from ..groundtruth.contact_sheet import write_contact_sheet
+
+    split_dir = B.resolve_split_dir(args.data, args.split)
+    ids = split_ids(args.ids)
+    if args.out is not None and len(ids) > 1 and Path(args.out).suffix.lower() == ".png":
+        raise UserError(f"--out {args.out}: several examples need a folder for their sheets, not one PNG file")
+    if args.out is not None:
+        one_file = len(ids) == 1 and Path(args.out).suffix.lower() == ".png"
+        writable(args.out, kind="file" if one_file else "folder")
+    failed: dict[str, str] = {}
+    for sample_id in ids:
+        path = split_dir / sample_id
+        name = f"{split_dir.name}_{sample_id}_contact_sheet.png"
+        if args.out is None:
+            out = Path(name)
+        elif len(ids) == 1 and Path(args.out).suffix.lower() == ".png":
+            out = Path(args.out)
+        else:
+            out = Path(args.out) / name
+        try:
+            if not path.is_dir():
+                raise UserError(f"{path}: no bundle for example {sample_id}; render it first with "
+                                f"`rigidbench render --split {split_dir.name} --ids {sample_id}`")
+            out.parent.mkdir(parents=True, exist_ok=True)
+            write_contact_sheet(B.Sample(path), out)
+        except EXAMPLE_ERRORS as exc:
+            failed[sample_id] = str(exc)
+            print(f"FAILED {sample_id}: {exc}", file=sys.stderr)
+            continue
+        print(f"wrote {out}")
+    if failed and len(ids) == 1:
+        return 1
+    if failed:
+        print(f"{len(failed)} of {len(ids)} contact sheets failed", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def _inputs_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=output_file,
                    help="output file (default DATA/inputs.jsonl beside DATA/eval, where `download` and `import` "
@@ -116,10 +323,10 @@ def cmd_inputs(args, ctx: RunContext) -> int:
 COMMANDS = (
     Command("download", "the paper's published evaluation set: download (resumable), verify, extract and import "
                         "into DATA/eval (about 37 GB of free disk while it runs)",
-            "rigidbench.datasets.commands:cmd_download", _download_arguments),
+            "rigidbench.commands.data:cmd_download", _download_arguments),
     Command("import", "import a published evaluation set you downloaded by hand (the .tar.gz, its parts' folder, "
                       "or the extracted folder) into DATA/eval",
-            "rigidbench.datasets.commands:cmd_import", _import_arguments, groups=("selection",)),
+            "rigidbench.commands.data:cmd_import", _import_arguments, groups=("selection",)),
     Command("manifest", "write the fixed train (5,000) or eval (100) manifest as JSON Lines",
             "rigidbench.commands.data:cmd_manifest", _manifest_arguments),
     Command("simulate", "simulate examples with Bullet (no rendering): scene_spec.json, trajectories.npz, "
@@ -127,10 +334,10 @@ COMMANDS = (
             "rigidbench.commands.data:cmd_simulate", _simulate_arguments, groups=("manifest", "selection")),
     Command("render", "simulate and render examples into sample bundles (DATA/<split>/<id>/); reruns skip bundles "
                       "whose scene and preset are unchanged and render the others again",
-            "rigidbench.pipeline.render:cmd_render", _render_arguments,
+            "rigidbench.commands.data:cmd_render", _render_arguments,
             groups=("manifest", "selection", "progress", "executor")),
     Command("show", "write a PNG contact sheet of a rendered example (frames, masks, depth, ground-truth tracks)",
-            "rigidbench.pipeline.render:cmd_show", _show_arguments),
+            "rigidbench.commands.data:cmd_show", _show_arguments),
     Command("inputs", "write inputs.jsonl: first frame, prompt and negative prompt per example",
             "rigidbench.commands.data:cmd_inputs", _inputs_arguments, groups=("data",)),
 )

@@ -55,7 +55,7 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_predict(args, ctx: RunContext) -> int:
-    from ..pipeline.predict import predict
+    from ..stages.predict import predict
     from ..predictors import predictor_info
 
     if args.list:
@@ -93,7 +93,7 @@ def _audit_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_audit(args, ctx: RunContext) -> int:
-    from ..pipeline.audit import audit
+    from ..flows.audit import audit
 
     models = split_ids(args.models)
     output_dir(args.out)

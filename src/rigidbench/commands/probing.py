@@ -1,14 +1,26 @@
-"""The ``probe`` command group: extract, fit, intervene, report (what they run: ``probe.commands``)."""
+"""The ``probe`` command group: extract, fit, intervene, report (paper sections 5.2-5.3, appendix E;
+docs/probing.md): their arguments and what they run. Light: torch and the models are imported only when a command
+runs."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from ..argtypes import existing_folder, non_negative_int, output_folder, positive_int
-from ..probe.commands import INTERVENTION_TAUS, PAPER_TAUS
+from ..argtypes import existing_folder, non_negative_int, output_folder, positive_int, selected_ids
+from ..context import RunContext
+from ..errors import UserError
+from ..perception.device import resolve_device
 from ..probe.recipe import CHOICES, INLP_PROCEDURES, RECIPE_NAMES
+from ..registry import load_target
 from ..train.config import MODEL_SPECS
 from . import Command
+
+PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
+INTERVENTION_TAUS = "0.3,0.5,0.7"
+#: command-line destination -> ``recipe.Conditioning`` field
+CONDITIONING_OPTIONS = {"prompt": "prompt", "text_padding": "padding", "clean_slot_timestep": "clean_slot_timestep",
+                        "dtype": "dtype", "objective_dtype": "objective_dtype", "noise": "noise"}
 
 
 def _extract_arguments(p) -> None:
@@ -105,15 +117,104 @@ def _report_arguments(p) -> None:
     p.add_argument("--out", type=output_folder, required=True, help="report directory (index.html)")
 
 
+def parse_floats(text: str, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise UserError(f"{what}: no values in {text!r}")
+    return values
+
+
+def parse_ints(text: str | None, what: str) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        return [int(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"{what}: expected comma-separated integers, got {text!r}") from None
+
+
+def conditioning_overrides(args) -> dict:
+    """The conditioning choices given on the command line (``commands.probing``), by ``Conditioning`` field."""
+    return {field: getattr(args, dest) for dest, field in CONDITIONING_OPTIONS.items()
+            if getattr(args, dest, None) is not None}
+
+
+def cmd_extract(args, ctx: RunContext) -> int:
+    run_extract = load_target("rigidbench.stages.probe_extract:run_extract", "command")
+    summary = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
+                          model_path=None if args.model_path is None else str(args.model_path),
+                          taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
+                          limit=args.limit, progress=not args.no_progress, backbone_seed=args.random_seed,
+                          ids=selected_ids(args), recipe=args.recipe, overrides=conditioning_overrides(args))
+    print(f"probe extract ({args.backbone}): {len(summary.extracted)} clips, {summary.rows} actor-slot rows into "
+          f"{summary.out} ({len(summary.skipped)} already there, {len(summary.failed)} failed) in "
+          f"{summary.seconds:.1f} s")
+    _print_redone(summary.redone, summary.report.ran if summary.report else [])
+    for clip, reason in summary.failed.items():
+        print(f"  FAILED {clip}: {reason}", file=sys.stderr)
+    return 1 if summary.failed and not summary.extracted and not summary.skipped else 0
+
+
+def _print_redone(redone: dict[str, str], ran) -> None:
+    """One line for the clips made again this run and why (the first few)."""
+    again = [i for i in ran if i in redone]
+    if again:
+        print(f"  made again: {len(again)} clips ({'; '.join(f'{i}: {redone[i]}' for i in again[:5])}"
+              f"{' ...' if len(again) > 5 else ''})")
+
+
+def cmd_fit(args, ctx: RunContext) -> int:
+    fit = load_target("rigidbench.probe.fit:run_fit", "command")
+    settings_cls = load_target("rigidbench.probe.fit:ProbeSettings", "command")
+    device = resolve_device(args.net_device or ctx.device)
+    settings = settings_cls(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device,
+                            standardize=args.standardize, r2=args.r2)
+    records = fit(args.acts, args.out, targets=args.targets.split(",") if args.targets else None,
+                  probes=tuple(args.probes.split(",")), blocks=parse_ints(args.blocks, "--blocks"),
+                  taus=None if args.taus is None else parse_floats(args.taus, "--taus"), settings=settings,
+                  progress=not args.no_progress)
+    print(f"probe fit: {len(records)} cells in {args.out}/scores.csv")
+    return 0
+
+
+def cmd_intervene(args, ctx: RunContext) -> int:
+    run = load_target("rigidbench.stages.probe_intervene:run_intervene", "command")
+    if args.clips < 1:
+        raise UserError(f"--clips must be at least 1, got {args.clips}")
+    result = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"), clips=args.clips,
+                 blocks=parse_ints(args.blocks, "--blocks"), n_resamples=args.resamples,
+                 device=args.net_device or ctx.device, progress=not args.no_progress, full_readout=args.full_readout,
+                 inlp_dtype=args.inlp_dtype, clip_split=args.clip_split, recipe=args.recipe,
+                 overrides=conditioning_overrides(args), inlp_procedure=args.inlp_procedure)
+    print(f"probe intervene: {len(result['clips'])} clips ({result['clips_this_run']} run now), "
+          f"{len(result['bases'])} cells ({result['bases_fitted_this_run']} fitted now) into {args.out}")
+    _print_redone(result.get("redone", {}), result["clips"])
+    for row in result["summary"]:
+        print(f"  {row['variant']:>8} {row['readout']:>6}: dL = {row['mean']:.4g} [{row['lo']:.4g}, {row['hi']:.4g}]")
+    for clip, reason in result.get("failed", {}).items():
+        print(f"  FAILED {clip}: {reason}", file=sys.stderr)
+    return 0
+
+
+def cmd_report(args, ctx: RunContext) -> int:
+    report = load_target("rigidbench.probe.report:write_report", "command")
+    page = report(args.probes or [], args.intervene, args.out)
+    print(f"probe report: {page}")
+    return 0
+
+
 COMMANDS = (Command("probe", "probe Wan's transformer for physical state and remove position subspaces "
                             "(paper sections 5.2-5.3)", subcommands=(
     Command("extract", "actor-pooled outputs of every DiT block at five noise levels (resumable)",
-            "rigidbench.probe.commands:cmd_extract", _extract_arguments, groups=("selection",)),
+            "rigidbench.commands.probing:cmd_extract", _extract_arguments, groups=("selection",)),
     Command("fit", "linear and MLP probes with shuffled-label controls, per block x tau x target",
-            "rigidbench.probe.commands:cmd_fit", _fit_arguments),
+            "rigidbench.commands.probing:cmd_fit", _fit_arguments),
     Command("intervene", "INLP position subspace vs random and variance-matched PC controls: loss change through "
                          "the remaining blocks and the direct head",
-            "rigidbench.probe.commands:cmd_intervene", _intervene_arguments),
+            "rigidbench.commands.probing:cmd_intervene", _intervene_arguments),
     Command("report", "figures (PNG/PDF), CSV tables and an HTML page of probes and interventions",
-            "rigidbench.probe.commands:cmd_report", _report_arguments),
+            "rigidbench.commands.probing:cmd_report", _report_arguments),
 )),)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
-from ..argtypes import IdList, input_folder, int_at_least, non_negative_int, positive_int
+from ..argtypes import IdList, input_folder, int_at_least, non_negative_int, positive_int, writable
 from ..context import RunContext
+from ..errors import UserError
 from . import Command, executor_from, output_dir, selected_ids, split_dir, split_ids
 
 
@@ -16,7 +18,7 @@ def _validate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_validate(args, ctx: RunContext) -> int:
-    from ..validate import main as validate_main
+    from ..preflight import main as validate_main
 
     input_folder(args.predictions, "predictions", "the folder of <id>.mp4 files")
     return validate_main(args.predictions, split_dir(args))
@@ -47,7 +49,7 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_evaluate(args, ctx: RunContext) -> int:
-    from ..evaluation import evaluate
+    from ..stages.evaluate import evaluate
 
     input_folder(args.predictions, "predictions", "the folder of <id>.mp4 files")
     out = output_dir(args.out or Path("runs") / args.predictions.name)
@@ -92,9 +94,45 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
                    help="a probe report (the report.html `rigidbench probe report` wrote, or its directory) to link")
 
 
+def cmd_report(args, ctx=None) -> int:
+    """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed; optional
+    args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived"),
+    args.probe_report (a probe report to link)."""
+    from ..report import build_report
+
+    writable(args.out)
+    page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline,
+                        examples=getattr(args, "examples", 3), clips=not getattr(args, "no_clips", False),
+                        outlines=getattr(args, "outlines", "reference"),
+                        probe_report=getattr(args, "probe_report", None))
+    print(f"report for {len(args.runs)} run(s): {page}")
+    return 0
+
+
 def _readouts_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", type=Path, help="run directories (runs/MODEL)")
     p.add_argument("--examples", action="store_true", help="also one line per example")
+
+
+def cmd_readouts(args, ctx=None) -> int:
+    """CLI: rigidbench readouts RUN [RUN ...] [--examples]: print each run's readouts."""
+    from ..folders import RunFolder
+    from ..readouts.records import DISTRIBUTIONS, format_block, load_run_readouts, summary
+
+    for run in args.runs:
+        run = Path(run)
+        if not RunFolder(run).examples_dir.is_dir():
+            raise UserError(f"{run}: not a run folder (no examples/); run `rigidbench evaluate` first")
+        model, block, examples = load_run_readouts(run)
+        for line in format_block(model, block):
+            print(line)
+        if getattr(args, "examples", False):
+            for e in examples:
+                s = summary(e["readouts"])
+                raised = [k for k, v in s["flags"].items() if v]
+                vals = ", ".join(f"{k} {('-' if s[k] is None else format(s[k], '.3g'))}" for k in DISTRIBUTIONS)
+                print(f"    {e['id']} ({e.get('task', '')}): {vals}; flags: {', '.join(raised) or 'none'}")
+    return 0
 
 
 def _validate_metrics_arguments(p: argparse.ArgumentParser) -> None:
@@ -106,10 +144,71 @@ def _validate_metrics_arguments(p: argparse.ArgumentParser) -> None:
                    help="also use the failure modes that re-render with Blender (depth-offset, identity-swap; slow)")
 
 
-def _weights_arguments(p: argparse.ArgumentParser) -> None:
-    from ..perception.weights import add_arguments  # light: no torch or transformers at import
+def cmd_validate_metrics(args, ctx=None) -> int:
+    """CLI: rigidbench validate-metrics --data DIR --out DIR [--examples N] [--severities K] [--seed S]
+    [--with-rendered]."""
+    from ..groundtruth.bundle import resolve_split_dir
+    from ..validation.run import TABLE_STEM, validate_metrics
 
-    add_arguments(p)
+    writable(args.out)
+    try:
+        out = validate_metrics(resolve_split_dir(args.data, args.split), args.out, examples=args.examples, severities=args.severities,
+                               seed=args.seed, with_rendered=getattr(args, "with_rendered", False))
+    except ValueError as exc:  # an option out of range (BundleError, a RigidBenchError, reaches the CLI as is)
+        raise UserError(str(exc)) from None
+    summary = json.loads((out / "summary.json").read_text())
+    print(f"metric validation on {len(summary['examples'])} examples: {', '.join(summary['examples'])}")
+    for line in summary["lines"]:
+        print(f"  {line}")
+    for metric, reason in summary["skipped"].items():
+        print(f"  skipped {metric}: {reason}")
+    print(f"table: {out / (TABLE_STEM + '.md')} and .csv; figure: {out / (TABLE_STEM + '.png')} and .pdf")
+    return 0
+
+
+def _weights_arguments(p: argparse.ArgumentParser) -> None:
+    """--list and --download [NAME ...]."""
+    from ..perception.weights import WEIGHTS  # light: no torch or transformers at import
+
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--list", action="store_true", help="show every weight, where it is looked for and whether "
+                                                           "it is present (the default)")
+    group.add_argument("--download", nargs="*", metavar="NAME",
+                       help=f"fetch weights into the standard caches for offline use; names: {', '.join(WEIGHTS)} "
+                            "(none: everything the default neural perception and feature metrics need)")
+    p.add_argument("--json", action="store_true", help="with --list: print JSON instead of a table")
+
+
+def cmd_weights(args, ctx=None) -> int:
+    """`rigidbench weights`: args.list (bool), args.download (None or list of names; [] = defaults),
+    args.json (bool). Returns 0 on success, 1 if a download failed; an unknown name is a UserError."""
+    from ..errors import WeightsUnavailable
+    from ..perception.weights import WEIGHTS, download, format_listing, locate, missing_message, spec, status
+
+    if args.download is None:
+        rows = [status(name) for name in WEIGHTS]
+        print(json.dumps(rows, indent=2) if getattr(args, "json", False) else format_listing(rows))
+        return 0
+    names = args.download or [n for n, w in WEIGHTS.items() if w.default]
+    try:
+        for name in names:
+            spec(name)
+    except KeyError as exc:
+        raise UserError(f"--download: {exc.args[0]}") from None
+    failed = 0
+    for name in names:
+        w = WEIGHTS[name]
+        if w.kind == "package":
+            found = locate(name)
+            print(f"{name}: {'present at ' + str(found) if found else missing_message(name)}")
+            failed += found is None
+            continue
+        try:
+            print(f"{name}: downloaded to {download(name)}")
+        except WeightsUnavailable as exc:
+            print(f"{name}: {exc}", file=sys.stderr)
+            failed += 1
+    return 1 if failed else 0
 
 
 def _demo_arguments(p: argparse.ArgumentParser) -> None:
@@ -127,7 +226,7 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_demo(args, ctx: RunContext) -> int:
-    from ..pipeline.demo import run_demo
+    from ..flows.demo import run_demo
 
     output_dir(args.out)
     modes = split_ids(args.modes) or None
@@ -143,15 +242,15 @@ COMMANDS = (
                         "examples whose prediction, reference or settings changed",
             "rigidbench.commands.scoring:cmd_evaluate", _evaluate_arguments, groups=("data", "executor", "selection")),
     Command("report", "tables, figures and report.html from evaluation runs",
-            "rigidbench.report:cmd_report", _report_arguments),
+            "rigidbench.commands.scoring:cmd_report", _report_arguments),
     Command("readouts", "physics readouts of evaluation runs: playback speed, gravity, restitution, failure flags "
                         "(docs/physics.md)",
-            "rigidbench.readouts.records:cmd_readouts", _readouts_arguments),
+            "rigidbench.commands.scoring:cmd_readouts", _readouts_arguments),
     Command("validate-metrics", "controlled metric perturbations and one failure-mode response curve per metric "
                                 "(figure + table)",
-            "rigidbench.validation:cmd_validate_metrics", _validate_metrics_arguments, groups=("data",)),
+            "rigidbench.commands.scoring:cmd_validate_metrics", _validate_metrics_arguments, groups=("data",)),
     Command("weights", "list the perception/feature network weights, or download them for offline use",
-            "rigidbench.perception.weights:cmd_weights", _weights_arguments),
+            "rigidbench.commands.scoring:cmd_weights", _weights_arguments),
     Command("demo", "the whole loop on this machine: render, predict, evaluate (CPU, minutes)",
             "rigidbench.commands.scoring:cmd_demo", _demo_arguments),
 )

@@ -8,7 +8,7 @@ Everything lives in ``<data>/.download/<id>/``::
     extracted.tmp/   an extraction in progress (removed and redone if a run stopped during it)
     extracted/       the complete extraction (renamed from extracted.tmp)
     complete.json    id, version, md5, time: the download is done (written last, atomically)
-    imported.json    the samples a complete import made (``rigidbench download``, datasets/commands.py)
+    imported.json    the samples a complete import made (``rigidbench download``, commands/data.py)
 
 A run stopped at any moment (mid-part, between parts, during the MD5, during the extraction, before or while
 the parts are deleted) is finished by running it again, without fetching what is already on disk. Only one

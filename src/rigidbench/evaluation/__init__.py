@@ -1,4 +1,5 @@
-"""Evaluate a model's predictions against the reference bundles (paper, section 3.4 and appendix B).
+"""Scoring a model's predictions against the reference bundles (paper, section 3.4 and appendix B); the
+``evaluate`` stage that runs it over a folder is ``stages.evaluate``.
 
 For every reference example the evaluator decodes ``pred_dir/<id>.<ext>``, resizes it to the
 reference resolution, runs a perception backend on it (cached by content hash), aligns the video
@@ -16,15 +17,14 @@ A rerun skips examples whose inputs (video, world state, reference, backend, set
 unchanged and recomputes the others; an interrupted run resumes. One bad example is recorded
 with its reason and never stops the others; a bug (any other exception) stops the run.
 
-Modules: ``runner`` (the loop), ``scoring`` (one example -> metrics), ``cache`` (input hashes),
-``aggregation`` (results.json numbers) and ``provenance`` (run.json).
+Modules: ``scoring`` (one example -> metrics), ``keys`` (input hashes), ``protocol`` (decoding and the JPEG
+round trip), ``aggregation`` (results.json numbers) and ``provenance`` (run.json); the loop is
+``stages.evaluate``.
 """
 
 from .aggregation import EVAL_SIZE, aggregate, summarise, why_not_official
-from .cache import SCORE_VERSION, file_hash, reference_hash
-from .runner import EvaluationSummary, evaluate, find_prediction, ready_backend
+from .keys import SCORE_VERSION, file_hash, reference_hash
 from .scoring import metric_inputs, score_example, score_inputs, tracked_points_world
 
-__all__ = ["EVAL_SIZE", "SCORE_VERSION", "EvaluationSummary", "aggregate", "evaluate", "file_hash",
-           "find_prediction", "metric_inputs", "ready_backend", "reference_hash", "score_example", "score_inputs",
-           "summarise", "tracked_points_world", "why_not_official"]
+__all__ = ["EVAL_SIZE", "SCORE_VERSION", "aggregate", "file_hash", "metric_inputs", "reference_hash", "score_example",
+           "score_inputs", "summarise", "tracked_points_world", "why_not_official"]

@@ -6,7 +6,7 @@ import importlib.metadata as md
 import platform
 import time
 
-from .cache import SCORE_VERSION, digest
+from .keys import SCORE_VERSION, digest
 
 PACKAGES = ("rigidbench", "numpy", "scipy", "opencv-python-headless", "av", "torch", "pytorch-msssim",
             "transformers")

@@ -36,13 +36,13 @@ from .. import jsonio
 from ..errors import BundleError
 from ..folders import (BUNDLE_FILES, CONTACTS_FILE, DEPTH_FILE, FRAMES_DIR, MASKS_FILE,  # noqa: F401 (re-exported)
                        METADATA_FILE, PROMPT_FILE, SPEC_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE, frame_name)
-from ..spec.types import SceneSpec
+from ..scene_spec.types import SceneSpec
 from ..video import VideoError, probe_video
 from . import camera_model as cm
 from .layout import SAMPLE_WHAT, PublishedLayoutError, check_not_published_layout, is_published_metadata, \
     published_layout_message
-from .trajectory import Contact, Trajectory, load_contacts
 from .tracks import Tracks
+from .trajectory import Contact, Trajectory, load_contacts
 
 BUNDLE_VERSION = 1
 PIXEL_CONVENTION = "pixel (x, y) = (column, row) with integer values at pixel centres; the image spans [-0.5, W-0.5]"

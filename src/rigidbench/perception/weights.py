@@ -19,8 +19,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import UserError, WeightsUnavailable
 from .. import extras
+from ..errors import WeightsUnavailable
 
 LPIPS_LIN_FILE = Path("weights") / "v0.1" / "alex.pth"
 
@@ -271,17 +271,6 @@ def download(name: str) -> Path:
 # Command line: rigidbench weights --list | --download [NAME ...]
 
 
-def add_arguments(parser) -> None:
-    """Adds --list and --download [NAME ...] to an argparse (sub)parser."""
-    group = parser.add_mutually_exclusive_group()
-    group.add_argument("--list", action="store_true", help="show every weight, where it is looked for and whether "
-                                                           "it is present (the default)")
-    group.add_argument("--download", nargs="*", metavar="NAME",
-                       help=f"fetch weights into the standard caches for offline use; names: {', '.join(WEIGHTS)} "
-                            "(none: everything the default neural perception and feature metrics need)")
-    parser.add_argument("--json", action="store_true", help="with --list: print JSON instead of a table")
-
-
 def _format_size(n: int | None) -> str:
     if n is None:
         return "-"
@@ -302,33 +291,3 @@ def format_listing(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def cmd_weights(args, ctx=None) -> int:
-    """`rigidbench weights`: args.list (bool), args.download (None or list of names; [] = defaults),
-    args.json (bool). Returns 0 on success, 1 if a download failed; an unknown name is a UserError."""
-    import json
-    import sys
-
-    if args.download is None:
-        rows = [status(name) for name in WEIGHTS]
-        print(json.dumps(rows, indent=2) if getattr(args, "json", False) else format_listing(rows))
-        return 0
-    names = args.download or [n for n, w in WEIGHTS.items() if w.default]
-    try:
-        for name in names:
-            spec(name)
-    except KeyError as exc:
-        raise UserError(f"--download: {exc.args[0]}") from None
-    failed = 0
-    for name in names:
-        w = WEIGHTS[name]
-        if w.kind == "package":
-            found = locate(name)
-            print(f"{name}: {'present at ' + str(found) if found else missing_message(name)}")
-            failed += found is None
-            continue
-        try:
-            print(f"{name}: downloaded to {download(name)}")
-        except WeightsUnavailable as exc:
-            print(f"{name}: {exc}", file=sys.stderr)
-            failed += 1
-    return 1 if failed else 0

@@ -63,7 +63,7 @@ from ..groundtruth.camera_model import project
 from ..groundtruth.tracks import carry, visibility
 from ..perception.gt import WorldState, static_background
 from ..rotations import quat_to_matrix
-from ..spec.types import BodyPhysics
+from ..scene_spec.types import BodyPhysics
 from .base import Prediction
 
 log = logging.getLogger(__name__)

@@ -59,9 +59,9 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from ..driver import file_digest
 from ..errors import PredictionError, RigidBenchError, UserError
 from ..extras import available, install_command
+from ..hashing import file_digest
 from .base import PredictContext
 from .local import LocalVideoModel, dtype_kwarg
 from .options import WanOptions

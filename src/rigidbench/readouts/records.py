@@ -265,19 +265,3 @@ def one_line(model: str, block: dict) -> str:
             f"e^ {med('restitution')}; flags: {', '.join(flags) if flags else 'none'}")
 
 
-def cmd_readouts(args, ctx=None) -> int:
-    """CLI: rigidbench readouts RUN [RUN ...] [--examples]: print each run's readouts."""
-    for run in args.runs:
-        run = Path(run)
-        if not RunFolder(run).examples_dir.is_dir():
-            raise UserError(f"{run}: not a run folder (no examples/); run `rigidbench evaluate` first")
-        model, block, examples = load_run_readouts(run)
-        for line in format_block(model, block):
-            print(line)
-        if getattr(args, "examples", False):
-            for e in examples:
-                s = summary(e["readouts"])
-                raised = [k for k, v in s["flags"].items() if v]
-                vals = ", ".join(f"{k} {('-' if s[k] is None else format(s[k], '.3g'))}" for k in DISTRIBUTIONS)
-                print(f"    {e['id']} ({e.get('task', '')}): {vals}; flags: {', '.join(raised) or 'none'}")
-    return 0

@@ -33,7 +33,6 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from rigidbench.argtypes import writable
 from rigidbench.metrics import METRICS
 from rigidbench.report.analysis import analyse
 from rigidbench.report.checkpoints import checkpoint_figure, checkpoint_tables, find_checkpoints, write_checkpoint_csv
@@ -47,7 +46,7 @@ from rigidbench.report.tables import build_tables, to_markdown, write_csvs, writ
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ReportError", "ReportNotes", "ScoreTable", "build_report", "cmd_report", "load_runs"]
+__all__ = ["ReportError", "ReportNotes", "ScoreTable", "build_report", "load_runs"]
 
 # Which CSV files the HTML offers beside each table.
 _CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "by_task": ("by_task.csv",),
@@ -220,14 +219,3 @@ def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, basel
     return page
 
 
-def cmd_report(args, ctx=None) -> int:
-    """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed; optional
-    args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived"),
-    args.probe_report (a probe report to link)."""
-    writable(args.out)
-    page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline,
-                        examples=getattr(args, "examples", 3), clips=not getattr(args, "no_clips", False),
-                        outlines=getattr(args, "outlines", "reference"),
-                        probe_report=getattr(args, "probe_report", None))
-    print(f"report for {len(args.runs)} run(s): {page}")
-    return 0

@@ -51,9 +51,9 @@ from typing import Any, Iterator, Sequence
 import torch
 
 from ..atomic import atomic_file
-from ..driver import digest
 from ..errors import ConfigError, UserError
 from ..groundtruth.bundle import damaged_error
+from ..hashing import digest
 from ..jsonio import write_json
 
 CACHE_VERSION = 3  # 3: one file per clip and per prompt, indexed from the driver's ledger

@@ -5,9 +5,10 @@
 - ``background``: BGDrift under coherent translation vs independent jitter (synthetic corners);
 - ``identity``: IdDrift under identity swap vs gamma, with pixel L2 beside it;
 - ``curves``: each metric under the failure mode meant to move it, scored with gt perception;
-- ``output``: the table (CSV, Markdown) and the figure (PNG, PDF); ``run``: the command.
+- ``output``: the table (CSV, Markdown) and the figure (PNG, PDF); ``run``: all of it (the command:
+  ``commands.scoring``).
 """
 
-from .run import cmd_validate_metrics, validate_metrics
+from .run import validate_metrics
 
-__all__ = ["validate_metrics", "cmd_validate_metrics"]
+__all__ = ["validate_metrics"]

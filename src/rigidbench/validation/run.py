@@ -11,9 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..argtypes import writable
 from ..atomic import write_text
-from ..errors import UserError
 from ..groundtruth.bundle import Sample, bundle_dirs, refuse_imported, resolve_split_dir
 from ..metrics import METRICS
 from ..perception.features import FeatureNets, load_feature_nets
@@ -23,8 +21,8 @@ from .curves import RENDERED_MODES, curve_plan, mode_sweep
 from .identity import CHANGES, collect_patches, swap_vs_gamma
 from .output import (Row, curve_rows, display, mean_se, select, skipped_rows, write_csv, write_figure,
                      write_markdown)
-from .readouts import readout_rows, readout_summary_lines, write_readout_csv, write_readout_figure
 from .ray import DIRECTIONS, ray_sweep, scene_from_sample, slope_through_origin
+from .readouts import readout_rows, readout_summary_lines, write_readout_csv, write_readout_figure
 
 log = logging.getLogger(__name__)
 
@@ -232,20 +230,3 @@ def _json_safe(x):
     return x
 
 
-def cmd_validate_metrics(args, ctx=None) -> int:
-    """CLI: rigidbench validate-metrics --data DIR --out DIR [--examples N] [--severities K] [--seed S]
-    [--with-rendered]."""
-    writable(args.out)
-    try:
-        out = validate_metrics(resolve_split_dir(args.data, args.split), args.out, examples=args.examples, severities=args.severities,
-                               seed=args.seed, with_rendered=getattr(args, "with_rendered", False))
-    except ValueError as exc:  # an option out of range (BundleError, a RigidBenchError, reaches the CLI as is)
-        raise UserError(str(exc)) from None
-    summary = json.loads((out / "summary.json").read_text())
-    print(f"metric validation on {len(summary['examples'])} examples: {', '.join(summary['examples'])}")
-    for line in summary["lines"]:
-        print(f"  {line}")
-    for metric, reason in summary["skipped"].items():
-        print(f"  skipped {metric}: {reason}")
-    print(f"table: {out / (TABLE_STEM + '.md')} and .csv; figure: {out / (TABLE_STEM + '.png')} and .pdf")
-    return 0

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from ...config import MaterialConfig, ObjectConfig
-from ...spec.types import RampShape
+from ...scene_spec.types import RampShape
 from . import _paint, materials as M
 from ._mesh import Part, Z_TO_X, box, fit, join, revolve, rounded_box, sphere, sweep, to_object
 from .loader import load_mesh_object, load_mesh_vertices

@@ -1,0 +1,425 @@
+"""The evaluate stage: every reference example's prediction perceived, aligned, scored and written.
+
+``EvaluateStage`` puts evaluation on the stage driver (``rigidbench.driver``): the driver selects the
+examples, keeps a ledger entry per example (``out/.stages/evaluate/<id>.json``) keyed by the example's
+inputs and rules, skips those whose key and committed record are unchanged, runs the rest through an
+executor and records failures; ``EvaluateWorker`` scores one example into a staging folder, and
+``EvaluateStage.finish`` writes results.json and run.json from every selected example's record.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, ledger_outcomes, run_stage
+from ..errors import EXAMPLE_ERRORS, EvaluationError
+from ..evaluation.aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
+from ..evaluation.keys import file_hash, input_key, reference_hash, write_json
+from ..evaluation.protocol import Protocol, get_protocol
+from ..evaluation.provenance import run_info
+from ..evaluation.scoring import metric_inputs, score_inputs
+from ..executors import Executor, LocalExecutor, Resources, Shard
+from ..firstframe import compare_first_frames, mismatch_message
+from ..folders import RunFolder, find_prediction, state_path
+from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity, unverified_reason
+from ..hashing import digest
+from ..jsonio import read_json
+from ..metrics import METRICS
+from ..perception.base import Perception, get_backend
+from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
+from ..readouts.records import aggregate_readouts, example_readouts, read_example_readouts, record_problem
+from ..video import align_video, aligned_length, reference_times, resize_frames
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvaluationSummary:
+    """What ``evaluate`` did: ``evaluated`` (scored now, sorted), ``reused`` (unchanged records kept),
+    ``failed`` (id -> reason, in selection order), the skipped measurements, whether the run is official,
+    results.json's content, the stage driver's report (``stage.redone``: why each earlier record was
+    not reused) and the examples another process was scoring meanwhile (``elsewhere``, not waited for)."""
+
+    out_dir: Path
+    evaluated: list[str]
+    reused: list[str]
+    failed: dict[str, str]
+    skipped_metrics: dict[str, str]
+    official: bool
+    results: dict
+    stage: StageReport | None = None
+    elsewhere: list[str] = field(default_factory=list)  # being scored by another process on the same folder
+
+
+def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
+    """Why a clip that does not cover the reference span is refused, and what to do."""
+    return (f"{pred}: the clip's last frame is at {coverage['clip_last_s']:.3f} s, so it covers "
+            f"{coverage['frames']} of the {coverage['reference_frames']} reference frames (0 to "
+            f"{coverage['seconds']:.3f} s); it must cover the reference span 0 to {coverage['span_s']:.3f} s "
+            f"({coverage['reference_frames']} frames at {fps:g} fps), as the published evaluator requires. "
+            "Generate the whole span, or pass --allow-short to score it on the frames it has (marked in "
+            "results.json; not an official result)")
+
+
+def refusal(facts: dict, pred: Path, ref_dir: Path, first_frame_check: bool, allow_short: bool) -> str | None:
+    """Why an example is refused under these rules, from its facts (``first_frame``, ``coverage``), or None.
+    A first frame that is not the reference's (another set's inputs) is named before a short clip. Used for
+    a fresh score, and for a record from before ledgers, which is adopted only when these rules accept it."""
+    first = facts.get("first_frame") or {}
+    if first_frame_check and first.get("matches") is False:
+        try:
+            metadata = Sample(ref_dir).metadata
+        except EXAMPLE_ERRORS:
+            metadata = {}
+        return mismatch_message(pred, ref_dir.name, ref_dir.parent, metadata, float(first.get("correlation", 0.0)),
+                                first.get("orientation"), first.get("turned_correlation"))
+    coverage = facts.get("coverage") or {}
+    if coverage.get("short") and not allow_short:
+        return short_clip_message(pred, coverage, float(coverage.get("fps", 24.0)))
+    return None
+
+
+def ready_backend(perception: str, options: dict | None = None):
+    """The perception backend, after checking it has every network weight it needs (EvaluationError
+    listing each missing one, where it was looked for and how to fetch it, before any work starts)."""
+    backend = get_backend(perception, **(options or {}))
+    missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
+    if missing:
+        raise EvaluationError(f"{backend.name} perception cannot run: " + "\n  ".join(missing)
+                              + "\n  (`rigidbench weights --list` shows every weight and where it is looked for)")
+    return backend
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
+             ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
+             model: str | None = None, progress: bool = True, perception_options: dict | None = None,
+             executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None,
+             protocol: str | None = None, first_frame_check: bool = True,
+             allow_short: bool = False) -> EvaluationSummary:
+    """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
+    holding one split); writes out/examples/<id>.json, .npz and .readouts.json, out/results.json and
+    out/run.json.
+
+    ``perception_options`` go to the backend's constructor (neural: depth_model, device, weights,
+    allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
+    ``out/cache/<backend>/``. A rerun reuses examples whose inputs and rules are unchanged (the stage
+    driver's ledger, ``out/.stages/evaluate/``; ``EvaluateStage.key``) and scores the others; a killed run
+    resumes. ``executor`` runs the examples (default: in this process); ``shard`` scores only its part of
+    the selection (its results.json covers that part; a final run without ``shard`` reuses every example
+    and aggregates). ``protocol`` names the evaluation protocol (``evaluation.protocol``; default
+    ``rigidbench-v1``, the published evaluator's rules). ``first_frame_check`` (default on) fails an
+    example whose prediction does not start from its reference's first frame (generated from another set's
+    inputs); turning it off is recorded in results.json. A clip that does not cover the reference span
+    (``video.aligned_length``, the rule ``validate`` uses) fails its example, as the published evaluator
+    refuses it; ``allow_short`` scores it on the frames it has instead, marked short in its record and
+    results.json (not official). Both rules are part of each example's key: changing one scores the
+    examples again. Every record and results.json hold each example's coverage (seconds and fraction of
+    the span scored)."""
+    pred_dir, out_dir = Path(pred_dir), Path(out_dir)
+    if not pred_dir.is_dir():
+        raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
+    data_dir = resolve_split_dir(data_dir)
+    selection = Selection.of(ids, limit, shard)
+    selection.apply([p.name for p in bundle_dirs(data_dir)], str(data_dir))  # an unknown id: before any loading
+    executor = executor or LocalExecutor()
+    rules = get_protocol(protocol)
+    backend = ready_backend(perception, perception_options)
+    if isinstance(executor, LocalExecutor) and nets is None:
+        nets = load_feature_nets(device)
+    stage = EvaluateStage(pred_dir, data_dir, out_dir, model=model or pred_dir.name, backend=backend, nets=nets,
+                          rules=rules, perception=perception, perception_options=perception_options or {},
+                          device=device, first_frame_check=first_frame_check, allow_short=allow_short,
+                          shard=selection.shard)
+    report = run_stage(stage, selection, executor, progress)
+    return stage.summary(report)
+
+
+def evaluation_resources(perception: str, device: str | None) -> Resources:
+    """One GPU per worker for neural perception (unless the device is the CPU); one CPU otherwise."""
+    return Resources(num_cpus=1, num_gpus=1 if perception == "neural" and device != "cpu" else 0)
+
+
+def read_record(path: Path) -> dict | None:
+    """The score record at ``path``, or None when there is none or it is damaged (a truncated or foreign file,
+    a field of another type: not an error, the example is simply scored again and the file replaced)."""
+    doc = read_json(path, "scoring this example again", expect=dict)
+    problem = None if doc is None else record_problem(doc)
+    if problem is not None:
+        log.warning("%s: %s; scoring this example again", path, problem)
+    return doc if problem is None else None
+
+
+class EvaluateStage(Stage):
+    """The evaluate stage as the driver sees it. Root: the run folder; items: the reference examples of the
+    split, payload ``{}`` (``key`` adds the example's ``input_key``, which the worker needs); key: the
+    example's input key (prediction video and world state, reference bundle, perception backend and version,
+    feature networks, metric list, protocol, score version; ``cache.input_key``, also stored in its record)
+    together with the rules ``first_frame_check`` and ``allow_short``; its output: ``examples/<id>.npz``,
+    ``<id>.readouts.json`` and ``<id>.json`` (the record, committed last)."""
+
+    name = "evaluate"
+    worker = "rigidbench.stages.evaluate:EvaluateWorker"
+
+    def __init__(self, pred_dir: Path, data_dir: Path, out_dir: Path, *, model: str, backend, nets: FeatureNets | None,
+                 rules: Protocol, perception: str, perception_options: dict, device: str | None,
+                 first_frame_check: bool, allow_short: bool, shard: Shard = Shard()):
+        self.pred_dir, self.data_dir, self.folder = Path(pred_dir), Path(data_dir), RunFolder(out_dir)
+        self.model, self.backend, self.nets, self.rules = model, backend, nets, rules
+        self.perception, self.perception_options, self.device = perception, perception_options, device
+        self.first_frame_check, self.allow_short, self.shard = first_frame_check, allow_short, shard
+        self.resources = evaluation_resources(perception, device)
+        self.metrics = tuple(METRICS)
+        self.nets_key = nets.key if nets is not None else feature_nets_key()
+        self.all_ids = [p.name for p in bundle_dirs(self.data_dir)]
+        # filled by key(): the content hashes (run.json), the input key (the record's) and the prediction file
+        self.pred_hashes: dict[str, str] = {}
+        self.ref_hashes: dict[str, str] = {}
+        self.input_keys: dict[str, str] = {}
+        self.predictions: dict[str, Path] = {}
+        self.results: dict | None = None
+        self.skipped: dict[str, str] = {}
+        self.started = time.time()
+
+    @property
+    def root(self) -> Path:
+        return self.folder.path
+
+    @property
+    def where(self) -> str:
+        return str(self.data_dir)
+
+    def items(self) -> dict[str, Any]:
+        return {sample_id: {} for sample_id in self.all_ids}
+
+    def key(self, item_id: str, payload: dict) -> str:
+        pred = find_prediction(self.pred_dir, item_id)
+        if pred is None:
+            raise EvaluationError(f"{item_id}: no prediction {item_id}.mp4 (or .webm/.mov/...) in {self.pred_dir}")
+        state = state_path(pred)
+        pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")  # both checked regular
+        ref_key = reference_hash(self.data_dir / item_id)
+        key = input_key(pred_key, ref_key, f"{self.backend.name}:{self.backend.version}", self.nets_key,
+                        self.metrics, f"protocol={self.rules.key()}")
+        self.pred_hashes[item_id], self.ref_hashes[item_id] = pred_key, ref_key
+        self.input_keys[item_id], self.predictions[item_id] = key, pred
+        payload["input_key"] = key
+        return digest(key, {"first_frame_check": self.first_frame_check, "allow_short": self.allow_short})
+
+    def intact(self, item_id: str) -> bool:
+        """Every output the worker listed (the .npz, the .readouts.json and the record) is still there as it was
+        committed (the driver's check), the readouts file still reads as one, and the record was scored from
+        these inputs (its ``input_key``)."""
+        if not super().intact(item_id) or read_example_readouts(self.folder.readouts(item_id),
+                                                                "the example is scored again") is None:
+            return False
+        record = read_record(self.folder.record(item_id))
+        return record is not None and record.get("input_key") == self.input_keys.get(item_id)
+
+    def adopt(self, item_id: str, payload: dict, key: str) -> dict | None:
+        """A record from before ledgers scored from these inputs, and accepted by these rules (it may have
+        been scored under others: its facts say whether it would be refused now)."""
+        record = read_record(self.folder.record(item_id))
+        if record is None or record.get("input_key") != payload["input_key"]:
+            return None
+        if refusal(record, self.predictions[item_id], self.data_dir / item_id, self.first_frame_check,
+                   self.allow_short) is not None:
+            return None
+        return {"record": record, "timings": {}}
+
+    def job(self) -> dict:
+        return {"pred_dir": str(self.pred_dir.resolve()), "data_dir": str(self.data_dir.resolve()),
+                "out_dir": str(self.root.resolve()), "model": self.model, "perception": self.perception,
+                "perception_options": self.perception_options, "device": self.device, "protocol": self.rules.name,
+                "first_frame_check": self.first_frame_check, "allow_short": self.allow_short}
+
+    def worker_instance(self) -> "EvaluateWorker | None":
+        """In this process: a worker around the backend and feature networks already loaded."""
+        return EvaluateWorker(self.job(), backend=self.backend, nets=self.nets) if self.nets is not None else None
+
+    def prepare(self, todo: list[str]) -> None:
+        self.folder.cache_dir.mkdir(parents=True, exist_ok=True)
+
+    def finish(self, report: StageReport) -> None:
+        """results.json and run.json from the records of every selected example scored now or earlier, by this
+        process or another on the same folder (the ledger: ``driver.ledger_outcomes``; a failure counts while
+        it is the example's latest entry); nothing when the run did not complete (an interrupt or a bug: the
+        rerun writes them). The driver runs this under the run-level lock, so of processes finishing at once
+        the last writes results.json from everything done by then."""
+        if not report.completed:
+            return
+        self.folder.examples_dir.mkdir(parents=True, exist_ok=True)
+        self.folder.cache_dir.mkdir(exist_ok=True)
+        done, failed = ledger_outcomes(self, report)
+        records = []
+        for sample_id, entry in done.items():
+            record = read_record(self.folder.record(sample_id))
+            records.append(record if record is not None else entry["result"]["record"])
+        records.sort(key=lambda r: r["id"])
+        complete_ids = {r["id"] for r in records}
+        missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
+        coverage = coverage_summary(records)
+        refs = [self.data_dir / i for i in report.selected]
+        dataset = set_identity(refs)
+        unverified = unverified_reason(dataset)  # a published set whose MD5 nobody checked is never official
+        official = (len(self.all_ids) == EVAL_SIZE and len(report.selected) == len(self.all_ids)
+                    and complete_ids == set(self.all_ids) and not failed and not missing_metrics
+                    and not coverage["short"] and unverified is None)
+        self.skipped = {m: _skip_reason(records, m, self.nets) for m in missing_metrics}
+        results = {"model": self.model, "perception": self.backend.name,
+                   "protocol": {**self.rules.facts(), "first_frame_check": self.first_frame_check,
+                                "allow_short": self.allow_short},
+                   "dataset": dataset, "official": official, "metrics": list(self.metrics),
+                   "n_examples": len(records), "n_reference": len(self.all_ids), "failed": failed,
+                   "skipped_metrics": self.skipped, "coverage": coverage, **aggregate(records, self.metrics),
+                   "readouts": aggregate_readouts(records, self.root)}
+        notes = {r["id"]: r["notes"] for r in records if r.get("notes")}
+        if notes:  # values the protocol's rules leave undefined, with the reason (e.g. the release would stop)
+            results["notes"] = notes
+        if self.shard.count > 1:
+            results["shard"] = str(self.shard)
+        if not official:
+            results["why_not_official"] = why_not_official(self.all_ids, complete_ids, failed, missing_metrics,
+                                                           coverage["short"]) + ([unverified] if unverified else [])
+        write_json(self.folder.results, results)
+        timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
+        for sample_id in report.ran:
+            for k, v in report.results[sample_id].get("timings", {}).items():
+                timings[k] = timings.get(k, 0.0) + v
+        feature_nets = self.nets if self.nets is not None else FeatureNets(skipped=dict(self.skipped))
+        info = run_info(self.model, self.pred_dir, self.data_dir, self.backend, feature_nets, self.metrics,
+                        self.pred_hashes, self.ref_hashes, timings, time.time() - self.started, sorted(report.ran),
+                        list(report.reused), failed)
+        write_json(self.folder.run, {**info, "protocol": self.rules.facts(), "dataset": results["dataset"]})
+        self.results = results
+
+    def summary(self, report: StageReport) -> EvaluationSummary:
+        """The run as ``evaluate`` returns it (after ``finish``)."""
+        failed = {i: report.failed[i] for i in report.selected if i in report.failed}
+        return EvaluationSummary(self.root, sorted(report.ran), list(report.reused), failed, self.skipped,
+                                 bool(self.results["official"]), self.results, report, list(report.elsewhere))
+
+
+def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> str:
+    if nets is not None and metric in nets.skipped:
+        return nets.skipped[metric]
+    return next((r["skipped"][metric] for r in records if metric in r.get("skipped", {})), "not computed")
+
+
+class EvaluateWorker(StageWorker):
+    """Scores one example per call into the staging folder; keeps its perception backend and feature
+    networks loaded between calls (built from the job on a Ray actor or a child process, handed over
+    ready in this process). The payload must hold the example's ``input_key`` (``EvaluateStage.key``)."""
+
+    STEPS = 3  # decode, perceive, measure
+
+    def __init__(self, job: dict, backend=None, nets: FeatureNets | None = None):
+        super().__init__(job)
+        self.pred_dir, self.data_dir, self.out_dir = (Path(job[k]) for k in ("pred_dir", "data_dir", "out_dir"))
+        self.model = job["model"]
+        self.cache_dir = RunFolder(self.out_dir).cache_dir
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        self.backend = backend or ready_backend(job["perception"], job.get("perception_options"))
+        if hasattr(self.backend, "use_cache_dir"):
+            self.backend.use_cache_dir(self.cache_dir / self.backend.name)
+        self.nets = nets if nets is not None else load_feature_nets(job.get("device"))
+        self.protocol = get_protocol(job.get("protocol"))
+        self.first_frame_check = bool(job.get("first_frame_check", True))
+        self.allow_short = bool(job.get("allow_short", False))
+
+    def run(self, item_id: str, payload: dict, staging: Path, progress: Progress) -> ItemResult:
+        timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
+        pred = find_prediction(self.pred_dir, item_id)
+        if pred is None:
+            raise EvaluationError(f"{item_id}: its prediction disappeared from {self.pred_dir}")
+        record = _score_one(Sample(self.data_dir / item_id), pred, self.backend, self.nets, self.model,
+                            payload["input_key"], staging, self.cache_dir, timings, self.protocol,
+                            self.first_frame_check, self.allow_short, progress)
+        out = RunFolder(Path())  # the paths under the run folder, as written under staging
+        outputs = [out.arrays(item_id), out.readouts(item_id), out.record(item_id)]  # the record last: done
+        return ItemResult(outputs=[p.as_posix() for p in outputs], result={"record": record, "timings": timings})
+
+
+def clip_coverage(clip_times_s: np.ndarray, ref_times_s: np.ndarray, fps: float) -> dict:
+    """How much of the reference span a clip with frame times clip_times_s (T,) s covers: reference frames
+    covered (``aligned_length``), the seconds and fraction of the span (0 to ref_times_s[-1]) they reach,
+    the clip's last timestamp, and ``short`` when it misses any reference frame."""
+    n = aligned_length(clip_times_s, ref_times_s)
+    span_s = float(ref_times_s[-1]) if len(ref_times_s) else 0.0
+    seconds = float(ref_times_s[n - 1]) if n else 0.0
+    return {"frames": int(n), "reference_frames": int(len(ref_times_s)), "seconds": round(seconds, 6),
+            "span_s": round(span_s, 6), "fraction": round(seconds / span_s, 6) if span_s > 0 else float(n > 0),
+            "clip_last_s": round(float(clip_times_s[-1]), 6) if len(clip_times_s) else 0.0, "fps": float(fps),
+            "short": bool(n < len(ref_times_s))}
+
+
+def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, staging: Path,
+               cache_dir: Path, timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True,
+               allow_short: bool = False, progress: Progress = lambda done, total: None) -> dict:
+    """Decode, check coverage, perceive (cached under ``cache_dir`` by input key ``key``), align and score one
+    example; writes its .npz, .readouts.json and .json under ``staging/examples/`` (a run folder's layout)
+    and returns the record. A clip short of the reference span is refused (EvaluationError) unless
+    ``allow_short``."""
+    sample_id = sample.sample_id
+    steps = EvaluateWorker.STEPS
+    t0 = time.time()
+    ref_times = reference_times(sample.n_frames, sample.fps)
+    # Decode only up to the last reference time unless the backend needs every generated frame (neural:
+    # CoTracker3 offline and VDA see the whole clip, as in the published runs).
+    video = protocol.decode(pred, until_s=None if getattr(backend, "whole_clip", True) else float(ref_times[-1]))
+    w, h = sample.resolution
+    if video.size != (w, h):
+        video.frames = resize_frames(video.frames, (w, h))
+    facts = {"first_frame": compare_first_frames(video.frames[0], sample.frame(0)).facts(),
+             "coverage": clip_coverage(video.times_s, ref_times, sample.fps)}
+    why = refusal(facts, pred, sample.path, first_frame_check, allow_short)
+    if why is not None:  # another set's inputs, or short of the span: refused rather than scored
+        raise EvaluationError(why)
+    video.frames = protocol.prepare(video.frames)
+    timings["decode_s"] += time.time() - t0
+    progress(1, steps)
+    t0 = time.time()
+    cache = cache_dir / f"{sample_id}-{backend.name}-{key[:16]}.npz"
+    if not getattr(backend, "cache", True):  # cheaper to recompute than to store (gt)
+        perceived = backend.perceive(sample, video, pred)
+    elif cache.exists():
+        perceived = Perception.load(cache)
+    else:
+        perceived = backend.perceive(sample, video, pred)
+        for old_cache in cache_dir.glob(f"{sample_id}-{backend.name}-*.npz"):
+            old_cache.unlink()
+        perceived.save(cache)
+    timings["perception_s"] += time.time() - t0
+    progress(2, steps)
+    aligned = perceived.aligned(ref_times)
+    gen_rgb = align_video(video, ref_times)
+    t0 = time.time()
+    inputs = metric_inputs(sample, gen_rgb, aligned, nets, edge_rules=protocol.edge_rules)  # metrics and readouts
+    scores = score_inputs(inputs)
+    timings["metrics_s"] += time.time() - t0
+    record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
+              "protocol": protocol.name,
+              "frames_compared": int(gen_rgb.shape[0]), **facts, "input_key": key,
+              "perception": backend.name,
+              "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
+              "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None},
+              "notes": {m: r.note for m, r in scores.items() if r is not None and r.note}}
+    out = RunFolder(staging)
+    out.examples_dir.mkdir(parents=True, exist_ok=True)
+    record["readouts"] = example_readouts(sample, inputs, scores, staging)
+    arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
+              if r is not None and r.per_frame is not None}
+    np.savez_compressed(out.arrays(sample_id), **arrays)
+    write_json(out.record(sample_id), record)
+    progress(3, steps)
+    return record

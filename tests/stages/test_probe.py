@@ -1,0 +1,479 @@
+"""``probe extract`` and ``probe intervene`` on the stage driver, with the tiny Wan models on hand-made
+bundles (no Blender): a rerun computes nothing, a changed clip, cache entry or setting redoes exactly what
+changed and says why, an interrupted run resumes to the outputs of an uninterrupted one, a bad clip fails
+alone, and an activation store of the older chunked layout is still read."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("diffusers")
+
+from rigidbench.cli import main  # noqa: E402
+from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.errors import UserError  # noqa: E402
+from rigidbench.groundtruth.trajectory import Contact, Trajectory, save_contacts  # noqa: E402
+from rigidbench.probe import model as wan  # noqa: E402
+from rigidbench.probe.store import ActivationStore, shard_path  # noqa: E402
+from rigidbench.stages import probe_bases  # noqa: E402
+from rigidbench.stages.preprocess import run_preprocess  # noqa: E402
+from rigidbench.stages.probe_extract import run_extract  # noqa: E402
+from rigidbench.stages.probe_intervene import run_intervene  # noqa: E402
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+W, H, T, FPS = 160, 96, 10, 8.0
+CLIPS = ("00000", "00001", "00002", "00003")
+
+
+def write_bundle(split_dir: Path, sample_id: str, seed: int) -> Path:
+    """What preprocessing and extraction read of a bundle: frames, masks of a ball rolling right over a
+    passive block, their trajectories, one contact, metadata and a prompt."""
+    from PIL import Image
+
+    rng = np.random.default_rng(seed)
+    d = split_dir / sample_id
+    (d / "frames").mkdir(parents=True)
+    masks = np.zeros((T, 2, H, W), bool)
+    x0, y0 = int(rng.integers(5, 40)), int(rng.integers(10, 40))
+    for t in range(T):
+        masks[t, 0, y0:y0 + 24, x0 + 8 * t:x0 + 8 * t + 24] = True
+        masks[t, 1, 70:90, 20:140] = True
+    frames = np.full((T, H, W, 3), 100, np.uint8) + rng.integers(0, 20, (T, H, W, 3), dtype=np.uint8)
+    frames[masks[:, 1]] = (120, 80, 40)
+    frames[masks[:, 0]] = (220, 30 + seed, 30)
+    for k in range(T):
+        Image.fromarray(frames[k]).save(d / "frames" / f"{k:05d}.png")
+    np.savez_compressed(d / "masks.npz", masks=masks, names=np.array(["ball", "block"]),
+                        roles=np.array(["active", "passive"]))
+    pos = np.zeros((2, T, 3))
+    pos[0, :, 0] = np.linspace(0, 1, T) + seed
+    pos[0, :, 2] = 1 - 0.05 * np.arange(T) ** 2 / T
+    pos[1] = [0.0, 0.0, 0.2]
+    quat = np.zeros((2, T, 4))
+    quat[..., 0] = 1
+    vel = np.gradient(pos, 1 / FPS, axis=1)
+    Trajectory(names=("ball", "block"), roles=("active", "passive"), fps=FPS, positions_m=pos, quat_wxyz=quat,
+               linear_velocity_m_s=vel, angular_velocity_rad_s=np.zeros_like(vel)).save(d / "trajectories.npz")
+    contact(d, 6)
+    (d / "prompt.txt").write_text(f"A red ball number {seed} rolls to the right.")
+    (d / "metadata.json").write_text(json.dumps({"sample_id": sample_id, "task": "bounce", "frames": T, "fps": FPS,
+                                                 "resolution": [W, H]}))
+    return d
+
+
+def contact(bundle: Path, frame: int) -> None:
+    save_contacts(bundle / "contacts.json", [Contact(frame=frame, a="ball", b="block", points_m=((0.0, 0.0, 0.3),),
+                                                     normals=((0.0, 0.0, 1.0),), distances_m=(0.0,))], T, 0.002)
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory, torch_one_thread):
+    """Four bundles and their tiny cache."""
+    root = tmp_path_factory.mktemp("made")
+    for n, clip in enumerate(CLIPS):
+        write_bundle(root / "data" / "train", clip, n)
+    run_preprocess(root / "data" / "train", root / "cache", model="tiny", progress=False)
+    return root / "data" / "train", root / "cache"
+
+
+@pytest.fixture
+def data(made, tmp_path):
+    """A copy of the bundles and the cache this test may change."""
+    shutil.copytree(made[0], tmp_path / "data" / "train")
+    shutil.copytree(made[1], tmp_path / "cache")
+    return tmp_path / "data" / "train", tmp_path / "cache"
+
+
+@pytest.fixture
+def loads(monkeypatch):
+    """How often a backbone was loaded, a clip run through it and a cell's bases fitted."""
+    counts = {"backbone": 0, "forward": 0, "bases": 0}
+
+    def counting(module, name, key):
+        fn = getattr(module, name)
+
+        def wrapped(*args, **kwargs):
+            counts[key] += 1
+            return fn(*args, **kwargs)
+        monkeypatch.setattr(module, name, wrapped)
+
+    counting(wan, "load_backbone", "backbone")
+    counting(wan, "capture_blocks", "forward")
+    counting(probe_bases, "fit_bases", "bases")
+    return counts
+
+
+def extract(data, cache, out, **options):
+    return run_extract("base", cache, data, out, model="tiny", progress=False, **options)
+
+
+def store_content(acts) -> tuple[dict, dict]:
+    store = ActivationStore(acts)
+    return store.rows, {(b, t): store.cell(b, t) for b in range(store.blocks) for t in store.taus}
+
+
+def clip_part(content, clip):
+    """The rows and cells of one clip of ``store_content``."""
+    rows, cells = content
+    keep = rows["clip"] == clip
+    return {k: v[keep] for k, v in rows.items()}, {k: v[keep] for k, v in cells.items()}
+
+
+def rows_of(acts, clip):
+    return clip_part(store_content(acts), clip)
+
+
+def assert_same(a, b) -> None:
+    assert a[0].keys() == b[0].keys() and a[1].keys() == b[1].keys()
+    for k in a[0]:
+        np.testing.assert_array_equal(a[0][k], b[0][k])
+    for k in a[1]:
+        np.testing.assert_array_equal(a[1][k], b[1][k])
+
+
+# -- extract -------------------------------------------------------------------------------------------
+
+
+def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(data, tmp_path, loads, capsys):
+    bundles, cache = data
+    acts = tmp_path / "acts"
+    first = extract(bundles, cache, acts)
+    assert first.extracted == list(CLIPS) and not first.failed and first.rows > 0
+    assert loads["backbone"] == 1 and loads["forward"] == 4 * 5  # clips x taus
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["version"] == 3 and sorted(manifest["clips"]) == list(CLIPS)
+    assert sorted(manifest["splits"].values()) == ["test", "train", "train", "val"]
+    before = store_content(acts)
+
+    again = extract(bundles, cache, acts)
+    assert again.extracted == [] and again.skipped == list(CLIPS)
+    assert loads == {"backbone": 1, "forward": 20, "bases": 0}  # the backbone is not even loaded
+    assert json.loads((acts / "manifest.json").read_text())["clips"] == manifest["clips"]
+    assert_same(store_content(acts), before)
+
+    # one bundle's contacts change: that clip's targets, and only that clip, are extracted again
+    contact(bundles / "00002", 2)
+    changed = extract(bundles, cache, acts)
+    assert changed.extracted == ["00002"] and changed.redone == {"00002": "its inputs or settings changed"}
+    after = store_content(acts)
+    keep = before[0]["clip"] != "00002"
+    for k in after[1]:
+        np.testing.assert_array_equal(after[1][k], before[1][k])  # same latent and noise: same activations
+    assert not np.array_equal(after[0]["contact"][~keep], before[0]["contact"][~keep])
+    np.testing.assert_array_equal(after[0]["contact"][keep], before[0]["contact"][keep])
+    assert json.loads((acts / "manifest.json").read_text())["splits"] == manifest["splits"]  # splits are kept
+
+    # one clip of the cache is encoded again from another prompt: extraction redoes that clip alone
+    (bundles / "00001" / "prompt.txt").write_text("A blue ball rolls to the right.")
+    assert run_preprocess(bundles, cache, model="tiny", progress=False).encoded == ["00001"]
+    assert extract(bundles, cache, acts).extracted == ["00001"]
+    new, old = rows_of(acts, "00001"), clip_part(before, "00001")
+    np.testing.assert_array_equal(new[0]["position"], old[0]["position"])  # the same targets, another text
+    assert not np.array_equal(new[1][(1, 0.5)], old[1][(1, 0.5)])
+
+    # a setting every clip shares (the schedule fractions): all of them, and the command line says so
+    assert main(["probe", "extract", "--backbone", "base", "--cache", str(cache), "--data", str(bundles),
+                 "--out", str(acts), "--taus", "0.3,0.7", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "4 clips" in out and "made again: 4 clips (00000: its inputs or settings changed" in out
+    store = ActivationStore(acts)
+    assert store.taus == [0.3, 0.7] and store.manifest["splits"] == manifest["splits"]
+    np.testing.assert_array_equal(rows_of(acts, "00000")[1][(1, 0.3)], clip_part(before, "00000")[1][(1, 0.3)])
+
+
+def test_extract_resumes_an_interrupted_run_to_the_store_of_an_uninterrupted_one(data, tmp_path, monkeypatch):
+    bundles, cache = data
+    clean = tmp_path / "clean"
+    extract(bundles, cache, clean)
+    acts = tmp_path / "acts"
+    forward, seen = wan.forward, []
+
+    def interrupted(transformer, batch, *args, **kwargs):  # Ctrl-C while the third clip runs
+        seen.append(1)
+        if len(seen) > 2 * 5:
+            raise KeyboardInterrupt
+        return forward(transformer, batch, *args, **kwargs)
+
+    monkeypatch.setattr(wan, "forward", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        extract(bundles, cache, acts)
+    monkeypatch.setattr(wan, "forward", forward)
+    assert [read_ledger(acts, "probe-extract", c) is not None for c in CLIPS] == [True, True, False, False]
+    assert sorted(json.loads((acts / "manifest.json").read_text())["clips"]) == ["00000", "00001"]
+    # what a kill leaves too: a staging folder, and a committed clip whose ledger entry was never written
+    (staging_path(acts, "probe-extract", "00002") / "acts").mkdir(parents=True)
+    ledger_path(acts, "probe-extract", "00001").unlink()
+    resumed = extract(bundles, cache, acts)
+    assert resumed.skipped == ["00000"] and resumed.extracted == ["00001", "00002", "00003"]
+    assert not staging_path(acts, "probe-extract", "00002").exists()
+    assert_same(store_content(acts), store_content(clean))
+    for name in ("splits", "clips"):
+        assert json.loads((acts / "manifest.json").read_text())[name] == \
+            json.loads((clean / "manifest.json").read_text())[name]
+
+
+def test_extract_records_a_bad_clip_and_goes_on_and_refuses_an_older_store(data, tmp_path, capsys):
+    bundles, cache = data
+    (bundles / "00001" / "masks.npz").write_bytes(b"not a zip")
+    shutil.rmtree(bundles / "00003")
+    acts = tmp_path / "acts"
+    assert main(["probe", "extract", "--backbone", "base", "--cache", str(cache), "--data", str(bundles),
+                 "--out", str(acts), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "FAILED 00001" in err and "masks.npz" in err and "FAILED 00003: no bundle 00003" in err
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert sorted(manifest["clips"]) == ["00000", "00002"] and sorted(manifest["failed"]) == ["00001", "00003"]
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "manifest.json").write_text(json.dumps({"version": 2, "chunks": []}))
+    with pytest.raises(UserError, match="older RigidBench.*new --out"):
+        extract(bundles, cache, old)
+
+
+def test_a_checkpoint_backbone_is_keyed_by_its_weights_not_its_folder(data, tmp_path, loads):
+    from rigidbench.train.tiny import tiny_transformer
+
+    bundles, cache = data
+    model = tiny_transformer()
+    model.save_pretrained(tmp_path / "run-a" / "step-1")
+    acts = tmp_path / "acts"
+    first = run_extract(str(tmp_path / "run-a" / "step-1"), cache, bundles, acts, progress=False, limit=2)
+    assert first.extracted == ["00000", "00001"]
+    shutil.copytree(tmp_path / "run-a", tmp_path / "run-b")  # the same weights elsewhere: nothing to do
+    moved = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, progress=False, limit=2)
+    assert moved.skipped == ["00000", "00001"] and loads["backbone"] == 1
+    with torch.no_grad():
+        model.blocks[0].attn1.to_q.weight.mul_(2.0)
+    model.save_pretrained(tmp_path / "run-b" / "step-1")  # other weights at the same place: all again
+    trained = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, progress=False, limit=2)
+    assert trained.extracted == ["00000", "00001"] and set(trained.redone.values()) == \
+        {"its inputs or settings changed"}
+
+
+def test_an_activation_store_of_the_older_chunked_layout_reads_the_same(data, tmp_path):
+    """Version 2 (chunks of clips, a split column in the rows): the reader gives the same rows and cells."""
+    from safetensors.numpy import save_file
+
+    bundles, cache = data
+    acts = tmp_path / "acts"
+    extract(bundles, cache, acts)
+    rows, cells = store_content(acts)
+    manifest = json.loads((acts / "manifest.json").read_text())
+    old = tmp_path / "old"
+    (old / "rows").mkdir(parents=True)
+    chunks = []
+    for n, part in enumerate((["00000", "00001"], ["00002", "00003"])):
+        keep = np.isin(rows["clip"], part)
+        name = f"chunk-{n:05d}"
+        np.savez(old / "rows" / f"{name}.npz", **{k: v[keep] for k, v in rows.items()})
+        for (b, tau), x in cells.items():
+            shard_path(old, b, tau, name).parent.mkdir(parents=True, exist_ok=True)
+            save_file({"h": x[keep].astype(np.float16)}, str(shard_path(old, b, tau, name)))
+        chunks.append({"name": name, "clips": part, "rows": int(keep.sum())})
+    legacy = {k: v for k, v in manifest.items() if k not in ("clips", "empty", "settings_key")}
+    (old / "manifest.json").write_text(json.dumps({**legacy, "version": 2, "chunks": chunks}))
+    assert_same(store_content(old), (rows, cells))
+
+
+# -- intervene -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def store(made, tmp_path_factory, torch_one_thread):
+    acts = tmp_path_factory.mktemp("store") / "acts"
+    run_extract("base", made[1], made[0], acts, model="tiny", progress=False)
+    return acts
+
+
+def intervene(store, cache, out, **options):
+    return run_intervene(store, cache, out, **{"clips": 2, "n_resamples": 50, "progress": False, **options})
+
+
+def effects(out):
+    return [json.loads(x) for x in (Path(out) / "effects.jsonl").read_text().splitlines()]
+
+
+def test_intervene_rerun_computes_nothing_and_changed_settings_redo_exactly_the_changed_clips(made, store, tmp_path,
+                                                                                            loads):
+    cache = made[1]
+    out = tmp_path / "intv"
+    first = intervene(store, cache, out)
+    assert first["clips"] == ["00000", "00001"] and first["clips_this_run"] == 2
+    assert loads == {"backbone": 1, "forward": 2 * 3, "bases": 2 * 3}  # clips x taus; blocks x taus
+    lines = effects(out)
+    assert len(lines) == 2 * 2 * 3 * 3 * 2  # clips x blocks x taus x variants x readouts
+
+    again = intervene(store, cache, out, n_resamples=80)
+    assert again["clips_this_run"] == 0 and again["bases_fitted_this_run"] == 0 and again["n_resamples"] == 80
+    assert loads == {"backbone": 1, "forward": 6, "bases": 6}  # only the summary was computed again
+    assert effects(out) == lines
+
+    more = intervene(store, cache, out, clips=3)  # one more clip: only it runs
+    assert more["clips"] == ["00000", "00001", "00002"] and more["clips_this_run"] == 1
+    assert effects(out)[:len(lines)] == lines and loads["forward"] == 6 + 3
+
+    hooked = intervene(store, cache, out, full_readout="hook")  # a setting of every clip
+    assert hooked["clips_this_run"] == 2 and hooked["bases_fitted_this_run"] == 0
+    assert hooked["redone"] == {"00000": "its inputs or settings changed", "00001": "its inputs or settings changed"}
+    assert [e["delta"] for e in effects(out)] == pytest.approx([e["delta"] for e in lines], abs=1e-6)
+
+    float32 = intervene(store, cache, out, inlp_dtype="float32")  # INLP's precision: the bases and every clip
+    assert float32["bases_fitted_this_run"] == 2 * 3 and float32["clips_this_run"] == 2
+    assert {b["inlp_dtype"] for b in float32["bases"]} == {"float32"}
+
+
+def test_intervene_refits_the_bases_of_a_store_that_changed_and_reuses_copied_ones(made, store, tmp_path, loads):
+    cache = made[1]
+    out = tmp_path / "intv"
+    intervene(store, cache, out)
+    copy = tmp_path / "copy"
+    shutil.copytree(out / "bases", copy / "bases")  # bases fitted on the same store, without their ledger
+    reused = intervene(store, cache, copy)
+    assert reused["bases_fitted_this_run"] == 0 and loads["bases"] == 6 and effects(copy) == effects(out)
+    changed = tmp_path / "acts"
+    shutil.copytree(store, changed)
+    ledger_path(changed, "probe-extract", "00003").unlink()  # the store loses a clip: other rows, other bases
+    run_extract("base", cache, made[0], changed, model="tiny", progress=False, limit=3)
+    assert sorted(json.loads((changed / "manifest.json").read_text())["clips"]) == list(CLIPS[:3])
+    refit = intervene(changed, cache, out)
+    assert refit["bases_fitted_this_run"] == 6 and refit["clips_this_run"] == 2
+
+
+def test_intervene_resumes_an_interrupted_run_to_the_effects_of_an_uninterrupted_one(made, store, tmp_path,
+                                                                                   monkeypatch):
+    cache = made[1]
+    clean = tmp_path / "clean"
+    intervene(store, cache, clean, clips=3)
+    out = tmp_path / "intv"
+    flow_loss, seen = wan.flow_loss, []
+
+    def interrupted(*args, **kwargs):  # Ctrl-C during the second clip
+        seen.append(1)
+        if len(seen) > 3 * (1 + 2 * (1 + 3 * 2)):  # one clip: taus x (baseline + blocks x (direct0 + variants x 2))
+            raise KeyboardInterrupt
+        return flow_loss(*args, **kwargs)
+
+    monkeypatch.setattr(wan, "flow_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        intervene(store, cache, out, clips=3)
+    monkeypatch.setattr(wan, "flow_loss", flow_loss)
+    assert [read_ledger(out, "probe-intervene", c) is not None for c in CLIPS[:3]] == [True, False, False]
+    (staging_path(out, "probe-intervene", "00001") / "effects").mkdir(parents=True)  # a kill's leftovers
+    resumed = intervene(store, cache, out, clips=3)
+    assert resumed["clips_this_run"] == 2 and not staging_path(out, "probe-intervene", "00001").exists()
+    assert effects(out) == effects(clean)
+    assert resumed["summary"] == json.loads((clean / "intervene.json").read_text())["summary"]
+
+
+# -- recipes -------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def seen_forwards(monkeypatch):
+    """What every transformer forward got: (the clip whose noise was drawn last, batch, text, dtype, a block
+    weight's dtype), and the noise drawn per clip."""
+    calls, noises, last = [], {}, {}
+    forward, noise_for = wan.forward, wan.noise_for
+
+    def spy_noise(clip_id, shape, seed, conditioning):
+        noises[clip_id] = noise_for(clip_id, shape, seed, conditioning)
+        last["clip"] = clip_id
+        return noises[clip_id]
+
+    def spy(transformer, batch, text, device, dtype=torch.float32):
+        calls.append((last["clip"], batch, text, dtype, transformer.blocks[0].attn1.to_q.weight.dtype))
+        return forward(transformer, batch, text, device, dtype)
+
+    monkeypatch.setattr(wan, "noise_for", spy_noise)
+    monkeypatch.setattr(wan, "forward", spy)
+    return calls, noises
+
+
+def test_extract_with_the_release_recipe_conditions_as_the_release_and_a_changed_choice_redoes_the_clips(
+        data, tmp_path, seen_forwards, capsys):
+    from rigidbench.benchmark import PROMPT_SUFFIX
+    from rigidbench.probe.recipe import RECIPES
+    from rigidbench.train.cache import LatentCache
+
+    bundles, cache_dir = data
+    calls, noises = seen_forwards
+    cache = LatentCache(cache_dir)
+    acts = tmp_path / "acts"
+    args = ["probe", "extract", "--backbone", "base", "--cache", str(cache_dir), "--data", str(bundles), "--out",
+            str(acts), "--limit", "2", "--no-progress"]
+    assert main(args + ["--recipe", "release"]) == 0
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["recipe"] == "release" and manifest["conditioning"] == RECIPES["release"].conditioning.as_dict()
+    assert [p["schedule_index"] for p in manifest["schedule"]] == [93, 303, 502, 698, 899]
+    assert len(calls) == 2 * 5
+    for clip, batch, text, dtype, weights in calls:
+        # the task prompt alone (no suffix), UMT5's outputs at all 512 positions
+        record = cache.manifest["prompts"][cache.prompt_key(clip, "task")]
+        assert record["text"] == (bundles / clip / "prompt.txt").read_text() and PROMPT_SUFFIX not in record["text"]
+        assert text.shape[1] == 512 and record["tokens"] < 512
+        np.testing.assert_array_equal(text[0].numpy(), cache.text(clip, "task")[:512].float().numpy())
+        assert text[0, record["tokens"]:].abs().sum() > 0
+        # one timestep for every token (slot 0 too), rounded to bfloat16; a bfloat16 forward
+        assert batch.timestep_tokens.shape == (1,)
+        assert float(batch.timestep_tokens[0]) in {980.0, 920.0, 832.0, 684.0, 360.0}
+        assert dtype == torch.bfloat16 and weights == torch.bfloat16
+    assert set(noises) == {"00000", "00001"} and torch.equal(noises["00000"], noises["00001"])  # shared noise
+
+    assert main(args + ["--recipe", "release"]) == 0 and len(calls) == 10  # the same recipe: nothing to do
+    capsys.readouterr()
+    calls.clear()
+    assert main(args) == 0  # ours: every clip again, with the evaluation prompt, zero padding, per-clip noise
+    assert "made again: 2 clips" in capsys.readouterr().out
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["recipe"] == "ours" and manifest["conditioning"]["noise"] == "per-clip"
+    for clip, batch, text, dtype, weights in calls:
+        tokens = cache.tokens(clip, "task+suffix")
+        assert PROMPT_SUFFIX in cache.manifest["prompts"][cache.prompt_key(clip)]["text"]
+        assert text[0, tokens:].abs().sum() == 0 and dtype == torch.float32 and weights == torch.float32
+        assert batch.timestep_tokens.shape == (1, 24) and (batch.timestep_tokens[0, :8] == 0).all()
+    assert not torch.equal(noises["00000"], noises["00001"])
+    calls.clear()
+    assert main(args + ["--recipe", "release", "--noise", "per-clip"]) == 0  # one choice changed: again
+    assert "made again: 2 clips" in capsys.readouterr().out and len(calls) == 10
+    manifest = json.loads((acts / "manifest.json").read_text())
+    assert manifest["recipe"] == "release+changes" and manifest["conditioning"]["noise"] == "per-clip"
+    assert manifest["conditioning"]["prompt"] == "task"
+
+
+def test_intervene_on_a_release_store_uses_its_conditioning_and_the_release_inlp(made, tmp_path, seen_forwards,
+                                                                                caplog):
+    from rigidbench.probe.recipe import RECIPES
+
+    bundles, cache = made
+    acts = tmp_path / "acts"
+    run_extract("base", cache, bundles, acts, model="tiny", progress=False, recipe="release")
+    calls, _ = seen_forwards
+    calls.clear()
+    out = tmp_path / "intv"
+    result = intervene(acts, cache, out, clips=1)
+    assert result["recipe"] == "release" and result["inlp"]["procedure"] == "release"
+    assert result["conditioning"] == RECIPES["release"].conditioning.as_dict() == result["store_conditioning"]
+    assert calls and all(c[3] == torch.bfloat16 and c[1].timestep_tokens.shape == (1,) for c in calls)
+    import csv
+
+    with (out / "bases.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 3
+    for row, facts in zip(rows, result["bases"]):
+        added = [r for r in facts["train_r2"] if not r < 0.05]
+        assert row["procedure"] == "release" and int(row["rounds"]) == len(added)
+        assert int(row["rounds_x3"]) == 3 * len(added) and int(row["rank"]) == facts["rank"]
+    # ours on the same store: the stable INLP refits every cell, the clip runs again, and the log says that
+    # the conditioning is not the store's
+    ours = intervene(acts, cache, out, clips=1, recipe="ours")
+    assert ours["inlp"]["procedure"] == "stable" and ours["bases_fitted_this_run"] == 6
+    assert ours["clips_this_run"] == 1 and "conditioning other than the store's extraction" in caplog.text
+    with (out / "bases.csv").open() as fh:
+        assert {r["procedure"] for r in csv.DictReader(fh)} == {"stable"}
