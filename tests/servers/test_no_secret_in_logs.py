@@ -143,3 +143,26 @@ def test_scrubbing_removes_query_user_information_and_remembered_secrets():
     text = logging.Formatter().format(record)
     assert 'HTTP Request: GET https://host.example:8443/a/b.mp4 "HTTP/1.1 200 OK"' in text
     assert "RuntimeError: failed on https://host.example:8443/a/b.mp4" in text and not leaks(text)
+
+
+LIBRARY_DOWNLOAD = """
+import logging, sys
+logging.basicConfig(level=logging.DEBUG, stream=sys.stderr)  # the user's own logging, not ours
+from rigidbench.datasets.describe import load_dataset
+from rigidbench.datasets.download import download_dataset
+desc = load_dataset("canary-eval-v0.1", [sys.argv[1]])
+download_dataset(desc, sys.argv[2], progress=False)
+"""
+
+
+def test_a_download_called_from_python_logs_no_url_secret(dataset, tmp_path):
+    """Library use: a script with its own DEBUG logging calls download_dataset directly (no command line, no
+    hosted predictor imported); httpx's request lines are there, scrubbed."""
+    srv, config = dataset
+    data = tmp_path / "data-library"
+    proc = subprocess.run([sys.executable, "-c", LIBRARY_DOWNLOAD, str(config), str(data)], capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "HTTP Request: GET" in proc.stderr  # httpx logged at DEBUG as asked...
+    assert not leaks(proc.stdout + proc.stderr), (proc.stdout + proc.stderr)[-2000:]  # ...with no secret
+    assert not files_with_canaries(data)

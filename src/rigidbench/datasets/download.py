@@ -37,14 +37,18 @@ from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit, urlunsplit
 
 from ..errors import RigidBenchError, UserError
 from ..extras import require
 from ..jsonio import write_json
+from ..logsafe import install_filter, public_url
 from .datadir import format_bytes, hold_lock, prepare_data_dir
 from .describe import DatasetDescription, DatasetPart
 from .extract import safe_extract
+
+# httpx logs every request's full URL at INFO: its records are scrubbed even where the command line's logging
+# (logsafe.configure_logging) is not in use, e.g. a download called from Python.
+install_filter(("httpx", "httpcore.connection", "httpcore.http11", __name__))
 
 log = logging.getLogger(__name__)
 
@@ -177,14 +181,6 @@ class _Retryable(Exception):
     def __init__(self, reason: str, after_s: float | None = None):
         super().__init__(reason)
         self.reason, self.after_s = reason, after_s
-
-
-def public_url(url: str) -> str:
-    """``url`` without user info, query string or fragment (what an error message may show)."""
-    s = urlsplit(url)
-    host = s.hostname or ""
-    netloc = f"{host}:{s.port}" if s.port else host
-    return urlunsplit((s.scheme, netloc, s.path, "", ""))
 
 
 def _fetch_parts(desc: DatasetDescription, root: Path, client: Any, settings: TransferSettings,
