@@ -31,16 +31,20 @@ class NoopWorker:
 
 
 def render_rate(rows, reg, quality: str, executor_name: str, workers: int) -> dict:
+    from rigidbench.driver import RunOptions
     from rigidbench.executors import RayExecutor
     from rigidbench.stages.render import render_rows
 
     with tempfile.TemporaryDirectory(prefix="rigidbench-scale-") as tmp:
         t0 = time.perf_counter()
         if executor_name == "local":
-            done, failures = render_rows(rows, reg, Path(tmp), quality=quality, workers=workers, progress=False)
+            reports = render_rows(rows, reg, Path(tmp), quality=quality, workers=workers,
+                                  run=RunOptions(progress=False))
         else:
-            done, failures = render_rows(rows, reg, Path(tmp), quality=quality, progress=False,
-                                         executor=RayExecutor(workers=workers))
+            reports = render_rows(rows, reg, Path(tmp), quality=quality,
+                                  run=RunOptions(executor=RayExecutor(workers=workers), progress=False))
+        done = [i for report in reports for i in report.ran]
+        failures = [i for report in reports for i in report.failed]
         seconds = time.perf_counter() - t0
     return {"executor": executor_name, "workers": workers, "examples": len(done), "failed": len(failures),
             "seconds": round(seconds, 2), "examples_per_minute": round(60.0 * len(done) / seconds, 2)}

@@ -52,6 +52,7 @@ import time
 from abc import ABC, abstractmethod
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator, Mapping, Sequence
 
@@ -110,6 +111,46 @@ class Selection:
         return self.shard.select(chosen)
 
 
+@dataclass(frozen=True)
+class RunOptions:
+    """How a command runs a stage, built once from its arguments (``commands.run_options``): which examples
+    (``selection``), where they run (``executor``; None: this process), whether bars show (``progress``), and
+    whether to wait for the examples another process is making (``wait``, ``--wait``) or skip them."""
+
+    selection: Selection = Selection()
+    executor: Executor | None = None
+    progress: bool = True
+    wait: bool = False
+
+
+# -- why an example is made again --------------------------------------------------------------------------
+
+
+class Why(str, Enum):
+    """Why an earlier output of an example is not reused (the reasons of ``StageReport.redone``)."""
+
+    CHANGED = "its inputs or settings changed"
+    FAILED_BEFORE = "it failed before"
+    DAMAGED = "its output is missing or damaged"
+
+
+class Redo(str):
+    """Why an example is made again: a ``Why`` and a detail; as text, the reason the report prints
+    ("it failed before (disk full)")."""
+
+    why: Why
+    detail: str
+
+    def __new__(cls, why: Why, detail: str = "") -> "Redo":
+        text = f"{why.value} ({detail})" if detail else why.value
+        self = super().__new__(cls, text)
+        self.why, self.detail = why, detail
+        return self
+
+    def __reduce__(self):
+        return Redo, (self.why, self.detail)
+
+
 # -- what a stage declares -----------------------------------------------------------------------------
 
 
@@ -150,16 +191,20 @@ class Stage(ABC):
         one from ``job()``."""
         return None
 
+    def check(self, selected: list[str]) -> None:
+        """Refuse the selection as a whole before any key is computed or anything loads (UserError), e.g. a
+        folder of imported bundles that must not be overwritten."""
+
     def intact(self, item_id: str) -> bool:
         """Whether the committed output of ``item_id`` is still there and sound (checked before skipping). By
         default: every output its ledger entry lists is still there as it was committed (``outputs_intact``);
         a stage that checks more calls this too."""
         return outputs_intact(self.root, read_ledger(self.root, self.name, item_id))
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | str | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> "dict | Redo | None":
         """An output made before ledgers existed that counts as made with ``key``: its result dict (the
-        ledger entry is then written for it); or why an earlier output there does not count (it is made
-        again, and the report says why); or None (nothing there)."""
+        ledger entry is then written for it); or a ``Redo`` saying why an earlier output there does not count
+        (it is made again, and the report says why); or None (nothing there)."""
         return None
 
     def prepare(self, todo: list[str]) -> None:
@@ -460,10 +505,11 @@ class StageReport:
     stage: str
     root: Path
     selected: list[str] = field(default_factory=list)
+    unit: str = "example"
     ran: list[str] = field(default_factory=list)
     reused: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
-    redone: dict[str, str] = field(default_factory=dict)
+    redone: dict[str, Redo] = field(default_factory=dict)
     results: dict[str, dict] = field(default_factory=dict)
     interrupted: list[str] = field(default_factory=list)
     elsewhere: list[str] = field(default_factory=list)
@@ -477,14 +523,33 @@ class StageReport:
         ok = set(self.ran) | set(self.reused)
         return [i for i in self.selected if i in ok]
 
-    def line(self, unit: str = "example") -> str:
-        """One line: how many ran, were up to date, failed, of how many."""
-        parts = [f"{len(self.ran)} done", f"{len(self.reused)} up to date", f"{len(self.failed)} failed"]
+    def lines(self) -> tuple[list[str], list[str]]:
+        """What every command prints after running a stage, the same words for every stage: (lines for
+        stdout, lines for stderr). The first says how many were made, up to date, failed, not started and
+        being made elsewhere; then one line per reason examples were made again; the failures; what to do."""
+        unit = self.unit
+        parts = [f"{len(self.ran)} made", f"{len(self.reused)} up to date", f"{len(self.failed)} failed"]
         if self.interrupted:
             parts.append(f"{len(self.interrupted)} not started")
         if self.elsewhere:
-            parts.append(f"{len(self.elsewhere)} being done by another process")
-        return f"{self.stage}: {', '.join(parts)} of {len(self.selected)} {unit}s -> {self.root}"
+            parts.append(f"{len(self.elsewhere)} being made by another process")
+        out = [f"{self.stage}: {', '.join(parts)} of {len(self.selected)} {unit}(s) -> {self.root}"]
+        for why in Why:
+            ids = [i for i in self.ran if i in self.redone and getattr(self.redone[i], "why", None) is why]
+            if ids:
+                more = f" and {len(ids) - 10} more" if len(ids) > 10 else ""
+                out.append(f"  made again, {why.value}: {', '.join(ids[:10])}{more}")
+        err = [f"  FAILED {item_id}: {reason}" for item_id, reason in self.failed.items()]
+        if self.elsewhere:
+            err.append(f"  {len(self.elsewhere)} {unit}(s) being made by another process: rerun when it is done, "
+                       "or pass --wait")
+        if self.failed or self.interrupted:
+            err.append(f"  rerun the same command to retry what failed or did not start; finished {unit}s are kept")
+        return out, err
+
+    def exit_status(self) -> int:
+        """1 when any selected example failed or was not started, else 0."""
+        return 1 if self.failed or self.interrupted else 0
 
     def to_json(self) -> dict:
         return {"stage": self.stage, "root": str(self.root), "selected": len(self.selected), "ran": self.ran,
@@ -514,7 +579,7 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
         if entry is None:
             adopted = stage.adopt(item_id, payload, key)
             if isinstance(adopted, str):  # an earlier output that does not count, and why
-                why = adopted
+                why = adopted if isinstance(adopted, Redo) else Redo(Why.CHANGED, adopted)
             elif adopted is not None:
                 if write:
                     write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted, adopted=True)
@@ -522,11 +587,11 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
                 report.results[item_id] = adopted
                 continue
         elif entry.get("key") != key:
-            why = "its inputs or settings changed"
+            why = Redo(Why.CHANGED)
         elif entry.get("status") != "succeeded":
-            why = f"it failed before ({entry.get('error') or 'no reason recorded'})"
+            why = Redo(Why.FAILED_BEFORE, entry.get("error") or "no reason recorded")
         elif not stage.intact(item_id):
-            why = "its output is missing or damaged"
+            why = Redo(Why.DAMAGED)
         else:
             report.reused.append(item_id)
             report.results[item_id] = entry.get("result") or {}
@@ -600,37 +665,29 @@ def _finishing(stage: Stage) -> Iterator[None]:
         lock.release()
 
 
-_WAIT = False  # run_stage's default for ``wait`` (``wait_for_others``)
-
-
-def wait_for_others(flag: bool) -> None:
-    """Whether ``run_stage`` waits for the examples another process is working on (True: ``--wait``) or skips
-    them (False, the default) when its caller does not say; the command line sets it once per command."""
-    global _WAIT
-    _WAIT = bool(flag)
-
-
-def run_stage(stage: Stage, selection: Selection = Selection(), executor: Executor | None = None,
-              progress: bool = True, on_result: Callable[[str, dict], None] | None = None,
-              wait: bool | None = None) -> StageReport:
-    """Run ``stage`` on the selected examples (see the module docstring); returns the report. ``on_result(id,
-    ledger entry)`` is called on this process as each example finishes (e.g. to update a shared record).
-    ``wait``: wait for the examples another process is working on (after the others; default:
-    ``wait_for_others``), rather than skip them (``report.elsewhere``)."""
+def run_stage(stage: Stage, run: RunOptions = RunOptions(),
+              on_result: Callable[[str, dict], None] | None = None) -> StageReport:
+    """Run ``stage`` as ``run`` says (see the module docstring); returns the report. In this order: the
+    candidates (``items``), the selection (an unknown id is a UserError naming ``where``), the stage's
+    ``check`` of the selection, the plan (keys, ledger, adopted outputs), ``prepare`` (only when something is
+    to run), the run, ``finish``. ``on_result(id, ledger entry)`` is called on this process as each example
+    finishes (e.g. to update a shared record). ``run.wait``: wait for the examples another process is
+    working on (after the others), rather than skip them (``report.elsewhere``)."""
     from tqdm import tqdm
 
-    wait = _WAIT if wait is None else wait
+    selection, executor, progress, wait = run.selection, run.executor, run.progress, run.wait
     started = time.time()
     items = stage.items()
     ids = selection.apply(list(items), stage.where)
-    report = StageReport(stage.name, stage.root, selected=ids)
+    stage.check(ids)
+    report = StageReport(stage.name, stage.root, selected=ids, unit=stage.unit)
     todo = plan(stage, ids, items, report)
     for item_id in report.reused:
         _remove_leftovers(stage, item_id)
     if report.reused:
         log.info("%s: %d of %d selected %ss are up to date in %s; skipping them", stage.name, len(report.reused),
                  len(ids), stage.unit, stage.root)
-    changed = [i for i, why in report.redone.items() if why == "its inputs or settings changed"]
+    changed = [i for i, why in report.redone.items() if why.why is Why.CHANGED]
     if changed:
         log.warning("%s: %d %s(s) made with other inputs or settings are made again: %s", stage.name, len(changed),
                     stage.unit, ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else ""))
@@ -681,7 +738,7 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
     job = {"stage": stage.name, "root": str(Path(stage.root).resolve()), "worker": stage.worker, "job": stage.job()}
     try:
         if todo:
-            runner = ItemRunner(job, stage.worker_instance()) if isinstance(executor, LocalExecutor) else None
+            runner = ItemRunner(job, stage.worker_instance()) if executor.in_process else None
             try:
                 tasks = todo
                 while tasks:  # a second round only for the examples waited for (wait)
@@ -716,7 +773,7 @@ def run_stage(stage: Stage, selection: Selection = Selection(), executor: Execut
     return report
 
 
-__all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "LEDGER_DIR", "Selection", "Stage", "StageReport",
-           "StageWorker", "commit", "fresh_staging", "ledger_outcomes", "ledger_path",
+__all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "LEDGER_DIR", "Redo", "RunOptions", "Selection",
+           "Stage", "StageReport", "StageWorker", "Why", "commit", "fresh_staging", "ledger_outcomes", "ledger_path",
            "lock_path", "output_kinds", "outputs_intact", "plan", "read_ledger", "run_stage", "stage_dir",
-           "staging_path", "wait_for_others", "write_ledger"]
+           "staging_path", "write_ledger"]

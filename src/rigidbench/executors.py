@@ -1,28 +1,27 @@
-"""How a stage's per-example work runs: in this process, on a Ray cluster, or as one shard of n.
+"""Where a stage's items run: in this process, one child process per item, or on Ray actors.
 
-A stage describes its work as a *worker*: a class ``Worker(job)`` whose instances are called
-once per item, ``worker(item) -> dict``, where ``job`` is a JSON-serialisable description of the
-run (the run context's configuration directories and device, the stage's options, the shared
-output directory). Workers write their per-example outputs atomically into the shared
-directory themselves and return a small record; the stage driver decides which items still need
-work (resume), records failures, shows progress and writes the run-level summary. So the same
-example gives the same files whichever executor ran it.
+The stage driver (``driver.run_stage``) hands an executor a *runner* ("module:Class", normally
+``driver.ItemRunner``), the JSON the runner is built from (the stage's name, root and worker options) and
+the items still to do, each a JSON dict (its id, data, key and the digest of the ledger entry the plan
+read). The executor builds the runner where the items run and calls ``runner(item)`` (or
+``runner(item, progress=f)`` when the driver shows sub-steps) once per item; the runner makes the item in
+a staging folder, commits it and writes its ledger entry, and returns that entry. ``map`` hands each entry
+back to the driver (``on_result``) as the item finishes, in completion order. A runner raises only for
+bugs: a bad example comes back as a failed ledger entry. So the same example gives the same files
+whichever executor ran it.
 
-- ``LocalExecutor``: one worker in this process, items one after another (or ``threads`` at once).
-- ``ProcessExecutor``: each item in its own fresh child Python process, ``workers`` at once, so a crash
-  (Blender's, a segfault) loses only that item; progress comes back on a pipe (the render stage's pool).
-- ``RayExecutor``: Ray actors (a worker each, so a model loads once per actor) with the resources
-  the stage asks for (``num_gpus=1`` for a GPU model, CPUs for rendering), ``max_restarts`` and
-  ``max_task_retries`` so an example whose worker died runs again elsewhere, and a bounded number
-  of items in flight. Ray is an optional extra (``pip install 'rigidbench[ray]'``).
-- ``Shard(i, n)``: not an executor but a selection: the i-th of n deterministic, disjoint parts of
-  the items (by position in the sorted item list), for job arrays of schedulers without Ray.
+- ``LocalExecutor`` (``in_process``): one runner in this process, items one after another, or ``threads``
+  at once. The driver may lend it a runner around a worker it built itself (``Stage.worker_instance``),
+  which may hold objects that cannot travel.
+- ``ProcessExecutor``: each item in a fresh child Python process, ``workers`` at once, so a crash (Blender's,
+  a segfault) loses only that item; progress and the entry come back on a pipe (render's default).
+- ``RayExecutor``: Ray actors, one runner each (a model loads once per actor), with the resources the stage
+  asks for (``num_gpus=1`` for a GPU model, CPUs for rendering), ``max_restarts`` and ``max_task_retries``
+  so an item whose actor died runs again elsewhere, and a bounded number of items in flight. Ray is an
+  optional extra (``pip install 'rigidbench[ray]'``).
 
-Workers are normally ``driver.ItemRunner`` (the stage driver's per-item commit around a stage's worker),
-called as ``worker(item, progress=f)`` when the caller asks for progress (``on_progress``).
-
-A worker's ``__call__`` raises only for bugs: it returns ``{"status": "failed", "error": ...}`` for
-an example whose input is bad (a ``RigidBenchError`` or an I/O error), like the local loops do.
+``Shard(i, n)`` is not an executor but part of the driver's ``Selection``: the i-th of n deterministic,
+disjoint parts of the selected items (by position), for job arrays of schedulers without Ray.
 """
 
 from __future__ import annotations
@@ -35,7 +34,7 @@ import sys
 from abc import ABC, abstractmethod
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, ClassVar, Sequence
 
 from .errors import UserError
 from .extras import require
@@ -89,6 +88,8 @@ class Executor(ABC):
     """Base: ``map`` yields (item, record) as items finish, in completion order."""
 
     name: str = "local"
+    #: whether items run in this process (the driver may then lend the executor a worker it built itself)
+    in_process: ClassVar[bool] = False
 
     @abstractmethod
     def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
@@ -111,6 +112,7 @@ class LocalExecutor(Executor):
 
     name: str = "local"
     threads: int = 1
+    in_process: ClassVar[bool] = True
 
     def map(self, worker: str, job: dict, items: Sequence, resources: Resources = Resources(),
             on_result: Callable[[Any, dict], None] | None = None, instance: Any = None,

@@ -3,8 +3,8 @@
 - a split of bundles (``data/eval/``): one folder per example, ``<id>/`` with the files below
   (``SplitFolder``, ``BundleFolder``), and the model inputs file beside it (``inputs_path``);
 - a predictions folder (``predictions/MODEL/``): ``<id>.<ext>`` videos (``VIDEO_EXTENSIONS``), the
-  world state beside each (``<id>.state.npz``), ``generation.json``, and the hidden
-  ``.generation/<id>.json``, ``.predictor.json``, ``.hosted/`` and ``.scratch/`` (``PredictionsFolder``;
+  world state beside each (``<id>.state.npz``), ``generation.json``, and the hidden ``.stages/`` (the
+  ledger), ``.hosted/`` and ``.scratch/`` (``PredictionsFolder``;
   ``find_prediction`` is the one rule for an example's video);
 - a run folder (``runs/MODEL/``): ``results.json``, ``run.json``, ``examples/<id>.json|.npz|.readouts.json``
   and ``cache/`` (``RunFolder``).
@@ -108,8 +108,6 @@ VIDEO_EXTENSIONS = (".mp4", ".webm", ".mov", ".mkv", ".avi", ".gif")
 MAX_VIDEO_BYTES = 2 * 1024 ** 3
 STATE_SUFFIX = ".state.npz"  # the exact world state a built-in predictor writes beside its video
 GENERATION_FILE = "generation.json"
-RECORDS_DIR = ".generation"  # one record per finished example, durable on its own (hidden)
-SETTINGS_FILE = ".predictor.json"  # hidden: validate and evaluate skip it
 HOSTED_DIR = ".hosted"  # hidden: validate, evaluate and the predict stage's scan skip it
 #: A run's temporary files (re-rendered bundles, Blender's own); hidden, so validate and evaluate skip it.
 SCRATCH_DIR = ".scratch"
@@ -187,17 +185,6 @@ class PredictionsFolder:
     @property
     def generation(self) -> Path:
         return self.path / GENERATION_FILE
-
-    @property
-    def records_dir(self) -> Path:
-        return self.path / RECORDS_DIR
-
-    def record(self, sample_id: str) -> Path:
-        return self.records_dir / f"{sample_id}.json"
-
-    @property
-    def settings(self) -> Path:
-        return self.path / SETTINGS_FILE
 
     @property
     def hosted_dir(self) -> Path:

@@ -5,7 +5,8 @@ import subprocess
 import sys
 
 from rigidbench.cli import COMMANDS, build_parser
-from rigidbench.commands import selection_from
+from rigidbench.commands import run_options
+from rigidbench.executors import ProcessExecutor, RayExecutor
 from rigidbench.registry import load_target
 
 
@@ -31,10 +32,28 @@ def test_selection_options_read_back_the_same_in_every_stage(tmp_path):
                  ["preprocess", "--data", str(tmp_path), "--out", "c", "--ids", "00001,00003", "00007", "--limit",
                   "2", "--shard", "1/2"],  # (--data must be a folder that is there)
                  ["render", "--ids", "00001,00003", "00007", "--limit", "2", "--shard", "1/2"]):
-        selection = selection_from(parser.parse_args(argv))
+        run = run_options(parser.parse_args(argv))
+        selection = run.selection
+        assert run.executor.in_process and run.progress and not run.wait, argv[0]
         assert selection.ids == ("00001", "00003", "00007") and selection.limit == 2, argv[0]
         assert (selection.shard.index, selection.shard.count) == (1, 2)
         assert selection.apply(["00001", "00002", "00003", "00007"], "here") == ["00003"]
+
+
+def test_one_executor_per_command_from_its_options():
+    """--executor ray gives every stage the same Ray executor (render's actors: --workers); otherwise the
+    command's own executor (render's child processes) or this process; --no-progress and --wait travel too."""
+    parser = build_parser()
+    ray = run_options(parser.parse_args(["render", "--executor", "ray", "--ray-address", "auto", "--workers", "3"]),
+                      local=ProcessExecutor(workers=3), actors=3)
+    assert isinstance(ray.executor, RayExecutor) and not ray.executor.in_process
+    assert (ray.executor.address, ray.executor.workers) == ("auto", 3)
+    local = run_options(parser.parse_args(["render", "--workers", "2", "--no-progress", "--wait"]),
+                        local=ProcessExecutor(workers=2))
+    assert isinstance(local.executor, ProcessExecutor) and local.executor.workers == 2
+    assert not local.executor.in_process and not local.progress and local.wait
+    clips = run_options(parser.parse_args(["evaluate", "preds", "--limit", "5"]), limit=2)
+    assert clips.selection.limit == 2 and clips.executor.in_process
 
 
 def test_model_args_and_their_flag_aliases_parse():

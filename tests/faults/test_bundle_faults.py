@@ -20,6 +20,7 @@ import pytest
 
 from fixtures import published_set as ps  # noqa: E402
 
+from rigidbench.driver import RunOptions, Selection  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
 from rigidbench.errors import BundleError  # noqa: E402
@@ -41,8 +42,8 @@ def reference_set(tmp_path_factory):
     """(data root with eval/00000..00002 imported, predictions/reference made by `rigidbench predict`)."""
     root = tmp_path_factory.mktemp("faults")
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    summary = import_published(published.parent, root / "data", registry=registry(), progress=False)
-    assert summary.imported == list(IDS) and not summary.failed
+    summary = import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False))
+    assert summary.ran == list(IDS) and not summary.failed
     assert main(["predict", "reference", "--data", str(root / "data"), "--out", str(root / "reference")]) == 0
     return root / "data", root / "reference"
 
@@ -204,7 +205,7 @@ def test_a_one_frame_clip_is_refused_and_scored_marked_with_allow_short(copies, 
     write_video(preds / f"{DAMAGED}.mp4", clip.frames[:1], fps=24, lossless=True)
 
     run = tmp_path / "run"
-    summary = evaluate(preds, data, run, progress=False)
+    summary = evaluate(preds, data, run, run=RunOptions(progress=False))
     results = results_of(run)
     assert sorted(summary.evaluated) == ["00000", "00002"] and set(summary.failed) == {DAMAGED}
     message = results["failed"][DAMAGED]
@@ -212,7 +213,7 @@ def test_a_one_frame_clip_is_refused_and_scored_marked_with_allow_short(copies, 
     assert "--allow-short" in message
     assert results["protocol"]["allow_short"] is False and results["coverage"]["short"] == []
 
-    summary = evaluate(preds, data, run, progress=False, allow_short=True)
+    summary = evaluate(preds, data, run, allow_short=True, run=RunOptions(progress=False))
     results = results_of(run)
     # --allow-short is one of the rules in every example's key: all are scored again under it
     assert not summary.failed and summary.evaluated == list(IDS) and not summary.reused
@@ -226,7 +227,7 @@ def test_a_one_frame_clip_is_refused_and_scored_marked_with_allow_short(copies, 
     assert any("--allow-short" in reason for reason in results["why_not_official"])
 
     # an official run again: the cached score of the short clip is not reused
-    summary = evaluate(preds, data, run, progress=False)
+    summary = evaluate(preds, data, run, run=RunOptions(progress=False))
     assert set(summary.failed) == {DAMAGED} and DAMAGED not in results_of(run)["coverage"]["per_example"]
 
 
@@ -236,7 +237,7 @@ def test_the_report_shows_coverage(copies, tmp_path):
     data, preds = copies
     clip = read_video(preds / f"{DAMAGED}.mp4")
     write_video(preds / f"{DAMAGED}.mp4", clip.frames[:7], fps=24, lossless=True)  # 0.25 s of the 0.5 s span
-    evaluate(preds, data, tmp_path / "run", progress=False, allow_short=True)
+    evaluate(preds, data, tmp_path / "run", allow_short=True, run=RunOptions(progress=False))
     per = results_of(tmp_path / "run")["coverage"]["per_example"]
     assert per[DAMAGED]["fraction"] == 0.5 and per[DAMAGED]["seconds"] == 0.25
     page = build_report([tmp_path / "run"], tmp_path / "report", resamples=100, examples=0, clips=False)
@@ -255,7 +256,7 @@ def test_a_fifo_and_a_link_to_dev_zero_fail_fast(copies, tmp_path):
     os.mkfifo(preds / f"{DAMAGED}.mp4")
     (preds / "00002.mp4").unlink()
     (preds / "00002.mp4").symlink_to("/dev/zero")
-    summary = evaluate(preds, data, tmp_path / "run", progress=False)
+    summary = evaluate(preds, data, tmp_path / "run", run=RunOptions(progress=False))
     assert summary.evaluated == ["00000"]
     assert "FIFO" in summary.failed[DAMAGED] and f"{DAMAGED}.mp4" in summary.failed[DAMAGED]
     assert "character device" in summary.failed["00002"] and "/dev/zero" in summary.failed["00002"]
@@ -269,7 +270,7 @@ def test_a_link_to_a_regular_file_is_read(copies, tmp_path):
     target = tmp_path / "elsewhere.mp4"
     shutil.move(preds / "00000.mp4", target)
     (preds / "00000.mp4").symlink_to(target)
-    summary = evaluate(preds, data, tmp_path / "run", progress=False, ids=["00000"])
+    summary = evaluate(preds, data, tmp_path / "run", run=RunOptions(Selection.of(["00000"]), progress=False))
     assert summary.evaluated == ["00000"] and not summary.failed
 
 
@@ -298,7 +299,7 @@ def test_a_vfr_clip_a_fraction_of_a_millisecond_short_is_compared_whole(copies, 
 
     report = validate_predictions(preds, data / "eval")
     assert report.ok, [i.message for i in report.errors]
-    summary = evaluate(preds, data, tmp_path / "run", progress=False, ids=["00000"])
+    summary = evaluate(preds, data, tmp_path / "run", run=RunOptions(Selection.of(["00000"]), progress=False))
     assert summary.evaluated == ["00000"]
     record = json.loads((tmp_path / "run" / "examples" / "00000.json").read_text())
     assert record["frames_compared"] == 13 and record["coverage"]["frames"] == 13
@@ -311,7 +312,7 @@ def test_a_vfr_clip_a_fraction_of_a_millisecond_short_is_compared_whole(copies, 
 def test_render_timings_do_not_invalidate_cached_scores(copies, tmp_path):
     data, preds = copies
     run = tmp_path / "run"
-    assert sorted(evaluate(preds, data, run, progress=False).evaluated) == list(IDS)
+    assert sorted(evaluate(preds, data, run, run=RunOptions(progress=False)).evaluated) == list(IDS)
     for sample_id, seconds in (("00000", 12.5), ("00002", 99.0)):
         meta_path = data / "eval" / sample_id / "metadata.json"
         meta = json.loads(meta_path.read_text())
@@ -322,7 +323,7 @@ def test_render_timings_do_not_invalidate_cached_scores(copies, tmp_path):
     meta = json.loads(meta_path.read_text())
     meta["partition"] = "ood_objects"  # this one moves the results: scored again
     meta_path.write_text(json.dumps(meta))
-    summary = evaluate(preds, data, run, progress=False)
+    summary = evaluate(preds, data, run, run=RunOptions(progress=False))
     assert sorted(summary.reused) == ["00000", "00002"] and summary.evaluated == [DAMAGED]
 
 

@@ -28,7 +28,7 @@ from fixtures import child_env, published_set as ps
 from fixtures.toy_stage import ToyStage, calls
 
 from rigidbench.config import registry
-from rigidbench.driver import (ItemLock, ItemRunner, StageReport, ledger_outcomes, lock_path, read_ledger,
+from rigidbench.driver import (ItemLock, ItemRunner, RunOptions, StageReport, ledger_outcomes, lock_path, read_ledger,
                                run_stage, write_ledger)
 
 IDS = ["00000", "00001", "00002"]
@@ -77,13 +77,15 @@ def test_an_example_another_process_holds_is_skipped_and_said_or_waited_for(tmp_
     stage = ToyStage(tmp_path, PAYLOADS)
     held = ItemLock(lock_path(tmp_path, "toy", "b"))
     assert held.acquire()
-    report = run_stage(stage, progress=False)
+    report = run_stage(stage, RunOptions(progress=False))
     assert report.ran == ["a", "c", "d"] and report.elsewhere == ["b"] and not report.failed
     assert "1 example(s) are being done by another process" in caplog.text and "--wait" in caplog.text
-    assert "1 being done by another process" in report.line()
+    out, err = report.lines()
+    assert "1 being made by another process" in out[0]
+    assert "  1 example(s) being made by another process: rerun when it is done, or pass --wait" in err
     assert read_ledger(tmp_path, "toy", "b") is None and calls(tmp_path) == ["a", "c", "d"]
     threading.Timer(0.5, held.release).start()  # the other process lets it go without finishing it
-    waited = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False, wait=True)
+    waited = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False, wait=True))
     assert waited.ran == ["b"] and waited.reused == ["a", "c", "d"] and not waited.elsewhere
     assert calls(tmp_path) == ["a", "c", "d", "b"]
 
@@ -97,11 +99,11 @@ def test_an_example_finished_elsewhere_while_waiting_is_not_made_again(tmp_path)
     thread.start()
     while not (tmp_path / ".stages" / "toy" / "staging" / "b").exists():
         time.sleep(0.01)
-    report = run_stage(stage, progress=False, wait=True)
+    report = run_stage(stage, RunOptions(progress=False, wait=True))
     thread.join()
     assert report.ran == ["a", "c", "d"] and report.reused == ["b"] and report.results["b"] == {"value": 4}
     assert sorted(calls(tmp_path)) == ["a", "b", "c", "d"]  # b made once, by the other
-    again = run_stage(ToyStage(tmp_path, payloads), progress=False)
+    again = run_stage(ToyStage(tmp_path, payloads), RunOptions(progress=False))
     assert again.reused == ["a", "b", "c", "d"]
 
 
@@ -122,17 +124,9 @@ STAGE_COMMANDS = [("import",), ("simulate",), ("render",), ("predict",), ("audit
                   ("probe", "extract")]
 
 
-def record_wait(args, ctx):
-    """A command's run function that reports the driver's default for ``wait`` while the command runs."""
-    from rigidbench import driver
-
-    return driver._WAIT
-
-
-def test_wait_is_an_option_of_every_stage_and_reaches_the_driver_only_while_its_command_runs():
-    from rigidbench import driver
+def test_wait_is_an_option_of_every_stage_and_reaches_the_driver_in_its_run_options():
     from rigidbench.cli import build_parser
-    from rigidbench.commands import lazy
+    from rigidbench.commands import run_options
 
     for path in STAGE_COMMANDS:
         parser = build_parser()
@@ -140,10 +134,8 @@ def test_wait_is_an_option_of_every_stage_and_reaches_the_driver_only_while_its_
             parser = next(a for a in parser._actions if hasattr(a, "choices") and isinstance(a.choices, dict)
                           ).choices[name]
         assert "--wait" in parser._option_string_actions, " ".join(path)
-    command = lazy(f"{__name__}:record_wait")
-    assert command(build_parser().parse_args(["evaluate", "p", "--wait"]), None) is True
-    assert driver._WAIT is False  # taken back after the command
-    assert command(build_parser().parse_args(["evaluate", "p"]), None) is False
+    assert run_options(build_parser().parse_args(["evaluate", "p", "--wait"])).wait is True
+    assert run_options(build_parser().parse_args(["evaluate", "p"])).wait is False
 
 
 # -- two processes, started together -------------------------------------------------------------------------
@@ -151,11 +143,10 @@ def test_wait_is_an_option_of_every_stage_and_reaches_the_driver_only_while_its_
 TOY_RUN = """
 import json
 from pathlib import Path
-from rigidbench.driver import run_stage
+from rigidbench.driver import RunOptions, run_stage
 from rigidbench.executors import ProcessExecutor
 from fixtures.toy_stage import ToyStage
-report = run_stage(ToyStage(Path({root!r}), {payloads!r}), executor=ProcessExecutor(workers=2), progress=False,
-                   wait=True)
+report = run_stage(ToyStage(Path({root!r}), {payloads!r}), RunOptions(executor=ProcessExecutor(workers=2), progress=False, wait=True))
 print(json.dumps(report.to_json()))
 """
 
@@ -176,7 +167,7 @@ def test_two_waiting_runs_through_child_processes_make_each_example_once(tmp_pat
         assert sorted(report["ran"] + report["reused"]) == ["a", "b", "c", "d"]
     assert sorted(reports[0]["ran"] + reports[1]["ran"]) == ["a", "b", "c", "d"]
     assert sorted(calls(root)) == ["a", "b", "c", "d"]  # each example made once
-    run_stage(ToyStage(tmp_path / "single", payloads), progress=False)
+    run_stage(ToyStage(tmp_path / "single", payloads), RunOptions(progress=False))
     assert outputs(root) == outputs(tmp_path / "single")
     assert not (root / ".stages" / "toy" / "staging").exists()  # no staging folder or lock left behind
 
@@ -190,8 +181,8 @@ def reference_set(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("concurrent")
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    assert import_published(published.parent, root / "data", registry=registry(), progress=False).imported == IDS
-    assert predict("reference", root / "data" / "eval", root / "reference", PredictContext(), progress=False).written \
+    assert import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False)).ran == IDS
+    assert predict("reference", root / "data" / "eval", root / "reference", PredictContext(), run=RunOptions(progress=False)).written \
         == IDS
     return root / "data", root / "reference"
 
@@ -201,6 +192,7 @@ import sys, time
 from rigidbench.stages import evaluate as runner
 from rigidbench.stages.evaluate import evaluate
 from rigidbench.perception.features import FeatureNets
+from rigidbench.driver import RunOptions
 preds, data, out, scored = sys.argv[1:5]
 real = runner._score_one
 def slowed(sample, *args, **kwargs):
@@ -209,7 +201,7 @@ def slowed(sample, *args, **kwargs):
     time.sleep(0.4)  # both processes are at work at once
     return real(sample, *args, **kwargs)
 runner._score_one = slowed
-summary = evaluate(preds, data, out, nets=FeatureNets(), progress=False)
+summary = evaluate(preds, data, out, nets=FeatureNets(), run=RunOptions(progress=False))
 print(len(summary.evaluated), len(summary.reused), len(summary.failed), len(summary.elsewhere))
 """
 
@@ -228,7 +220,7 @@ def test_two_evaluates_on_one_folder_write_a_single_runs_results(reference_set, 
         assert failed == 0 and ran + reused + elsewhere == 3, stdout
         evaluated += ran
     assert evaluated == 3 and sorted(scored.read_text().split()) == IDS  # each example scored once
-    single = evaluate(preds, data, tmp_path / "single", nets=FeatureNets(), progress=False)
+    single = evaluate(preds, data, tmp_path / "single", nets=FeatureNets(), run=RunOptions(progress=False))
     assert (out / "results.json").read_text() == (tmp_path / "single" / "results.json").read_text()
     results = json.loads((out / "results.json").read_text())
     assert results["n_examples"] == 3 and results["failed"] == {} and single.results == results

@@ -26,7 +26,7 @@ from fixtures.toy_stage import ToyStage  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import registry  # noqa: E402
-from rigidbench.driver import ItemResult, Stage, StageWorker, read_ledger, run_stage
+from rigidbench.driver import ItemResult, RunOptions, Stage, StageWorker, read_ledger, run_stage
 from rigidbench.errors import BundleError  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle  # noqa: E402
 from rigidbench.hashing import digest  # noqa: E402
@@ -134,10 +134,10 @@ def made(tmp_path_factory):
     """(data root with eval/00000..00002 imported, the `reference` predictions, a run folder evaluating them)."""
     root = tmp_path_factory.mktemp("damaged")
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    summary = import_published(published.parent, root / "data", registry=registry(), progress=False)
-    assert summary.imported == list(IDS) and not summary.failed
+    summary = import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False))
+    assert summary.ran == list(IDS) and not summary.failed
     assert main(["predict", "reference", "--data", str(root / "data"), "--out", str(root / "preds")]) == 0
-    first = evaluate(root / "preds", root / "data", root / "run", nets=FeatureNets(), progress=False)
+    first = evaluate(root / "preds", root / "data", root / "run", nets=FeatureNets(), run=RunOptions(progress=False))
     assert first.evaluated == list(IDS) and not first.failed
     return root / "data", root / "preds", root / "run"
 
@@ -157,7 +157,7 @@ def no_traceback(capsys) -> tuple[str, str]:
 
 
 def rescore(preds: Path, data: Path, run: Path):
-    return evaluate(preds, data, run, nets=FeatureNets(), progress=False)
+    return evaluate(preds, data, run, nets=FeatureNets(), run=RunOptions(progress=False))
 
 
 # -- item 3: bundle files --------------------------------------------------------------------------------
@@ -222,7 +222,7 @@ def test_every_bundle_reader_fails_only_its_example_naming_the_file(made, shared
 
 
 def _fails_only_its_example_then_is_read(made, split: Path, tmp_path: Path, path: Path, name: str) -> None:
-    report = run_stage(ReadStage(tmp_path / "out", split, name), progress=False)
+    report = run_stage(ReadStage(tmp_path / "out", split, name), RunOptions(progress=False))
     assert report.ran == ["00000", "00002"] and list(report.failed) == [DAMAGED]
     message = report.failed[DAMAGED]
     assert message.startswith(f"example {DAMAGED}: {path} ") and "rigidbench import" in message and "\n" not in message
@@ -230,7 +230,7 @@ def _fails_only_its_example_then_is_read(made, split: Path, tmp_path: Path, path
     assert any(shown in problem for problem in check_bundle(split / DAMAGED, check_video=False))
 
     restore(path, made[0] / "eval" / DAMAGED / name)  # as a re-import would
-    again = run_stage(ReadStage(tmp_path / "out", split, name), progress=False)
+    again = run_stage(ReadStage(tmp_path / "out", split, name), RunOptions(progress=False))
     assert again.ran == [DAMAGED] and again.reused == ["00000", "00002"] and not again.failed
 
 
@@ -418,7 +418,7 @@ class PlainToyStage(ToyStage):
 @pytest.mark.parametrize("kind", ["missing", "swapped"])
 def test_the_default_intactness_check_covers_every_listed_output(tmp_path, damaged, kind):
     payloads = {"a": {"n": 1}, "b": {"n": 2}, "c": {"n": 3}}
-    run_stage(PlainToyStage(tmp_path, payloads), progress=False)
+    run_stage(PlainToyStage(tmp_path, payloads), RunOptions(progress=False))
     assert read_ledger(tmp_path, "toy", "b")["outputs"] == {"out/b.dir": "directory", "out/b.txt": "file"}
     path = tmp_path / damaged
     if path.is_dir():
@@ -429,6 +429,6 @@ def test_the_default_intactness_check_covers_every_listed_output(tmp_path, damag
         path.unlink()
         if kind == "swapped":
             path.mkdir()
-    again = run_stage(PlainToyStage(tmp_path, payloads), progress=False)
+    again = run_stage(PlainToyStage(tmp_path, payloads), RunOptions(progress=False))
     assert again.ran == ["b"] and again.reused == ["a", "c"] and again.redone == {"b": RESCORED}
     assert (tmp_path / "out" / "b.txt").read_text() == "4" and (tmp_path / "out" / "b.dir" / "value").is_file()

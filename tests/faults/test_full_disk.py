@@ -29,6 +29,7 @@ import pytest
 
 from fixtures import published_set as ps  # noqa: E402
 
+from rigidbench.driver import RunOptions  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.stages.import_set import import_published  # noqa: E402
 
@@ -107,7 +108,7 @@ def data(tmp_path_factory):
     root = tmp_path_factory.mktemp("full-disk")
     samples = [s for s in ps.DEFAULT_SAMPLES if not s.rgba]
     ps.write_set(root / "src", samples)
-    assert import_published(root / "src", root / "data", progress=False).ok
+    assert import_published(root / "src", root / "data", run=RunOptions(progress=False)).exit_status() == 0
     return root / "data"
 
 
@@ -245,8 +246,8 @@ def test_a_ledger_entry_that_cannot_be_written_stops_the_stage_wherever_the_exam
     blocked.mkdir(parents=True)  # a folder where the ledger entry goes: writing it fails with EISDIR
     with pytest.raises(UserError, match=rf"toy stopped at example b: cannot write {re.escape(str(blocked))}: "
                                         r"Is a directory; a folder is in the way"):
-        run_stage(ToyStage(tmp_path, payloads), executor=make_executor(executor), progress=False)
+        run_stage(ToyStage(tmp_path, payloads), RunOptions(executor=make_executor(executor), progress=False))
     assert (tmp_path / "out" / "a.txt").read_text() == "2" and ledger_path(tmp_path, "toy", "a").is_file()
     blocked.rmdir()
-    report = run_stage(ToyStage(tmp_path, payloads), progress=False)
+    report = run_stage(ToyStage(tmp_path, payloads), RunOptions(progress=False))
     assert report.reused == ["a"] and sorted(report.ran) == ["b", "c"] and not report.failed

@@ -25,10 +25,11 @@ pytest.importorskip("httpx")
 pytest.importorskip("av")
 pytest.importorskip("PIL")
 
+from rigidbench.driver import RunOptions, ledger_path, read_ledger  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
-from rigidbench.folders import GENERATION_FILE, RECORDS_DIR  # noqa: E402
+from rigidbench.folders import GENERATION_FILE  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
 from rigidbench.predictors.replicate import ReplicateClient  # noqa: E402
 from rigidbench.stages.predict import predict  # noqa: E402
@@ -67,7 +68,7 @@ def write_config(tmp_path, **client) -> Path:
 def run(split, out, config, **options):
     options.setdefault("concurrency", 2)
     ctx = PredictContext(RunContext(config_dirs=(config,)), seed=7, options=options)
-    return predict(MODEL, split, out, ctx, progress=False)
+    return predict(MODEL, split, out, ctx, run=RunOptions(progress=False))
 
 
 def spawn(server, split, out, config, concurrency=1, code=CLI, verbose=False, extra=()):
@@ -162,7 +163,7 @@ def test_an_intent_whose_request_never_left_creates_one_and_an_older_same_input_
     server.clock_offset_s = -3600  # an earlier prediction of the very same input, an hour before
     assert not run(split, out, config).failed
     (old,) = server.created
-    for path in [out / "00000.mp4", out / ".hosted" / "00000.json", out / RECORDS_DIR / "00000.json"]:
+    for path in [out / "00000.mp4", out / ".hosted" / "00000.json", ledger_path(out, "predict", "00000")]:
         path.unlink()
     server.clock_offset_s = 0
 
@@ -204,7 +205,7 @@ def test_a_kill_mid_download_resumes_by_id_and_cleans_the_partial_download(serve
     leftovers = [p.name for p in [*out.iterdir(), *(out / ".hosted").iterdir()] if p.name.startswith(".0")]
     assert leftovers == []
     modes = {stat.S_IMODE(p.stat().st_mode) for p in [out / "00000.mp4", out / GENERATION_FILE,
-                                                       out / RECORDS_DIR / "00000.json"]}
+                                                       ledger_path(out, "predict", "00000")]}
     assert len(modes) == 1  # the video as the JSON beside it
 
 
@@ -333,11 +334,11 @@ def test_examples_finishing_out_of_order_keep_their_records_through_a_kill(serve
     split, out = make_split(tmp_path / "eval", 3), tmp_path / "out"
     server.hold_answers["number 0 "] = 30  # the first example is slow; the two after it finish first
     proc = spawn(server, split, out, config, concurrency=3)
-    wait_for(lambda: all((out / RECORDS_DIR / f"0000{i}.json").exists() for i in (1, 2)), what="two records")
+    wait_for(lambda: all(ledger_path(out, "predict", f"0000{i}").exists() for i in (1, 2)), what="two records")
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(10)
     for sample_id in ("00001", "00002"):
-        entry = json.loads((out / RECORDS_DIR / f"{sample_id}.json").read_text())["entry"]
+        entry = read_ledger(out, "predict", sample_id)["result"]
         assert entry["status"] == "succeeded" and entry["prediction_id"] == state(out, sample_id)["prediction_id"]
         assert (out / f"{sample_id}.mp4").is_file()
     server.hold_answers.clear()
@@ -351,7 +352,7 @@ def test_a_finished_video_without_a_record_gets_it_back_from_the_hosted_state(se
     split, out = make_split(tmp_path / "eval", 2), tmp_path / "out"
     assert not run(split, out, config).failed
     pid = examples(out)["00001"]["prediction_id"]
-    (out / RECORDS_DIR / "00001.json").unlink()  # killed between the video and its record
+    ledger_path(out, "predict", "00001").unlink()  # killed between the video and its record (the ledger entry)
     doc = json.loads((out / GENERATION_FILE).read_text())
     del doc["examples"]["00001"]
     (out / GENERATION_FILE).write_text(json.dumps(doc))
@@ -360,7 +361,7 @@ def test_a_finished_video_without_a_record_gets_it_back_from_the_hosted_state(se
     entry = examples(out)["00001"]
     assert entry["prediction_id"] == pid and entry["status"] == "succeeded" and "recovered" in entry
     assert entry["prompt"].startswith("A red apple number 1") and entry["version"] == "hidden"
-    assert json.loads((out / RECORDS_DIR / "00001.json").read_text())["entry"]["prediction_id"] == pid
+    assert read_ledger(out, "predict", "00001")["result"]["prediction_id"] == pid
     assert len(server.created) == 2
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from fixtures.blender import ate3d_floor, render_eval_examples, requires_bpy
 
+from rigidbench.driver import RunOptions, Selection
 from rigidbench.groundtruth.bundle import Sample
 from rigidbench.perception.features import FeatureNets
 from rigidbench.predictors import PREDICTORS, PredictContext
@@ -22,9 +23,9 @@ def data_dir(tmp_path_factory):
 
 def _run(data_dir, tmp_path, name, severity=1.0):
     preds = tmp_path / "predictions" / name
-    run = predict(name, data_dir, preds, PredictContext(severity=severity), progress=False)
+    run = predict(name, data_dir, preds, PredictContext(severity=severity), run=RunOptions(progress=False))
     assert not run.failed and len(run.written) == 2
-    return evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), progress=False)
+    return evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), run=RunOptions(progress=False))
 
 
 def test_reference_against_itself_is_perfect(data_dir, tmp_path):
@@ -36,7 +37,7 @@ def test_reference_against_itself_is_perfect(data_dir, tmp_path):
     assert summary.results["protocol"]["name"] == "rigidbench-v1" and summary.results["dataset"]["dataset"] == "rendered"
     assert overall["iou"]["mean"] == 1.0 and 0.95 < overall["ssim"]["mean"] < 1.0
     lossless = evaluate(tmp_path / "predictions" / "reference", data_dir, tmp_path / "runs" / "lossless",
-                        nets=FeatureNets(), progress=False, protocol="lossless")
+                        nets=FeatureNets(), protocol="lossless", run=RunOptions(progress=False))
     assert lossless.results["overall"]["ssim"]["mean"] == 1.0 and lossless.results["protocol"]["jpeg_quality"] is None
     for name in ("centroid_l2", "chamfer", "ate", "si_mse", "bgdrift"):
         assert overall[name]["mean"] == pytest.approx(0.0, abs=1e-9), name
@@ -70,34 +71,31 @@ def test_predictions_from_our_rendered_set_are_refused_against_the_published_set
     published = [ps.PublishedSample(i, "free_fall", "modern_loft", "in_distribution", 11 + k, "apple")
                  for k, i in enumerate(("00015", "00020"))]
     ps.write_set(tmp_path / "published", published)
-    assert import_published(tmp_path / "published", tmp_path / "imported", progress=False).ok
+    assert import_published(tmp_path / "published", tmp_path / "imported", run=RunOptions(progress=False)).exit_status() == 0
     preds = tmp_path / "predictions" / "reference"
-    predict("reference", data_dir, preds, PredictContext(), progress=False)
-    summary = evaluate(preds, tmp_path / "imported", tmp_path / "runs" / "mixed", nets=FeatureNets(), progress=False)
+    predict("reference", data_dir, preds, PredictContext(), run=RunOptions(progress=False))
+    summary = evaluate(preds, tmp_path / "imported", tmp_path / "runs" / "mixed", nets=FeatureNets(), run=RunOptions(progress=False))
     assert sorted(summary.failed) == ["00015", "00020"] and not summary.evaluated
     assert "first frame does not match" in summary.failed["00015"] and "imported" in summary.failed["00015"]
     # ...while the same predictions against their own set pass the check
-    assert not evaluate(preds, data_dir, tmp_path / "runs" / "own", nets=FeatureNets(), progress=False).failed
+    assert not evaluate(preds, data_dir, tmp_path / "runs" / "own", nets=FeatureNets(), run=RunOptions(progress=False)).failed
 
 
 def test_unchanged_inputs_are_reused_and_changed_ones_recomputed(data_dir, tmp_path):
     first = _run(data_dir, tmp_path, "reference")
-    second = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(),
-                      progress=False)
+    second = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(), run=RunOptions(progress=False))
     assert second.reused == ["00015", "00020"] and not second.evaluated
     # Replace one prediction with a different failure mode: only that example is recomputed.
-    predict("static", data_dir, tmp_path / "predictions" / "reference", PredictContext(severity=1.0), ids=["00020"],
-            progress=False)
-    third = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(),
-                     progress=False)
+    predict("static", data_dir, tmp_path / "predictions" / "reference", PredictContext(severity=1.0), run=RunOptions(Selection.of(["00020"]), progress=False))
+    third = evaluate(tmp_path / "predictions" / "reference", data_dir, first.out_dir, nets=FeatureNets(), run=RunOptions(progress=False))
     assert third.reused == ["00015"] and third.evaluated == ["00020"]
 
 
 def test_bad_example_is_reported_and_others_continue(data_dir, tmp_path):
     preds = tmp_path / "predictions" / "broken"
-    predict("reference", data_dir, preds, PredictContext(severity=0.0), progress=False)
+    predict("reference", data_dir, preds, PredictContext(severity=0.0), run=RunOptions(progress=False))
     (preds / "00015.mp4").write_bytes(b"not a video")
-    summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), progress=False)
+    summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), run=RunOptions(progress=False))
     assert list(summary.failed) == ["00015"] and summary.evaluated == ["00020"]
     assert "00015" in json.loads((summary.out_dir / "results.json").read_text())["failed"]
 
@@ -116,16 +114,17 @@ def test_failure_modes_move_metrics_in_the_expected_direction(data_dir, tmp_path
 
 def test_predict_resumes_and_rewrites_when_the_severity_changes(data_dir, tmp_path):
     preds = tmp_path / "predictions" / "slow"
-    predict("slow", data_dir, preds, PredictContext(severity=0.5), progress=False)
+    predict("slow", data_dir, preds, PredictContext(severity=0.5), run=RunOptions(progress=False))
     stamps = {p.name: p.stat().st_mtime_ns for p in preds.glob("*.mp4")}
     (preds / "00020.mp4").unlink()  # as if interrupted before the second video was moved into place
-    run = predict("slow", data_dir, preds, PredictContext(severity=0.5), progress=False)
+    run = predict("slow", data_dir, preds, PredictContext(severity=0.5), run=RunOptions(progress=False))
     assert run.written == ["00015", "00020"] and run.skipped == ["00015"] and not run.failed
     assert (preds / "00015.mp4").stat().st_mtime_ns == stamps["00015.mp4"]  # kept, not redone
     assert not list(preds.glob(".*partial*"))
-    predict("slow", data_dir, preds, PredictContext(severity=1.0), progress=False)
+    predict("slow", data_dir, preds, PredictContext(severity=1.0), run=RunOptions(progress=False))
     assert (preds / "00015.mp4").stat().st_mtime_ns != stamps["00015.mp4"]  # new severity: written again
-    assert json.loads((preds / ".predictor.json").read_text()) == {"predictor": "slow", "target": "rigidbench.predictors.image_space:slow", "severity": 1.0}
+    assert json.loads((preds / "generation.json").read_text())["settings"] == \
+        {"predictor": "slow", "target": "rigidbench.predictors.image_space:slow", "severity": 1.0}
 
 
 IMAGE_SPACE = ("static", "slow", "fast", "delayed", "gamma", "camera-shake", "camera-drift", "background-wobble")
@@ -149,9 +148,8 @@ def _sweep(data_dir, tmp_path, name, severities=(0.25, 0.5, 1.0)):
     out = []
     for s in severities:
         preds = tmp_path / "predictions" / f"{name}-{s}"
-        predict(name, data_dir, preds, PredictContext(severity=s), progress=False)
-        out.append(evaluate(preds, data_dir, tmp_path / "runs" / f"{name}-{s}", nets=FeatureNets(),
-                            progress=False).results["overall"])
+        predict(name, data_dir, preds, PredictContext(severity=s), run=RunOptions(progress=False))
+        out.append(evaluate(preds, data_dir, tmp_path / "runs" / f"{name}-{s}", nets=FeatureNets(), run=RunOptions(progress=False)).results["overall"])
     return out
 
 

@@ -11,6 +11,7 @@ pytest.importorskip("transformers")
 
 from fixtures import tiny_perception  # noqa: E402
 
+from rigidbench.driver import RunOptions  # noqa: E402
 from rigidbench.metrics import METRICS  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
@@ -39,7 +40,7 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
     from rigidbench.perception.features import load_identity_features
 
     preds = tmp_path / "predictions" / "reference"
-    run = predict("reference", data_dir, preds, PredictContext(severity=1.0), progress=False)
+    run = predict("reference", data_dir, preds, PredictContext(severity=1.0), run=RunOptions(progress=False))
     assert not run.failed and len(run.written) == 1
     models = tiny_perception.tiny_models()
     calls = count_forward_calls(models)
@@ -47,8 +48,7 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
     nets = FeatureNets(lpips=tiny_perception.tiny_lpips(),
                        identity=load_identity_features(device="cpu", model=tiny_perception.tiny_dinov2()))
     out = tmp_path / "runs" / "reference"
-    summary = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=nets,
-                       progress=False)
+    summary = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=nets, run=RunOptions(progress=False))
     assert not summary.failed and summary.evaluated == ["00015"]
     # SAM 2: the prompt frame, then 12 propagation steps (the `test` preset has 12 frames).
     assert calls["sam2"] == 1 + 12 and calls["cotracker"] == 2 and calls["depth"] >= 1  # actors, background
@@ -67,10 +67,9 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
 
     # Unchanged inputs: the example is reused. Changed feature nets: rescored, but no model runs again.
     before = dict(calls)
-    again = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=nets, progress=False)
+    again = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=nets, run=RunOptions(progress=False))
     assert again.reused == ["00015"] and not again.evaluated
-    rescored = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=FeatureNets(),
-                        progress=False)
+    rescored = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=FeatureNets(), run=RunOptions(progress=False))
     assert rescored.evaluated == ["00015"] and calls == before
     rerecord = json.loads((out / "examples" / "00015.json").read_text())
     assert rerecord["metrics"]["iou"] == m["iou"] and rerecord["metrics"]["lpips"] is None

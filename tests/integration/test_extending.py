@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from fixtures.blender import render_eval_examples, requires_bpy
 
+from rigidbench.driver import RunOptions
 from rigidbench.flows.demo import format_table
 from rigidbench.metrics import METRICS, MetricInfo, MetricResult
 from rigidbench.perception.features import FeatureNets
@@ -54,10 +55,10 @@ def test_a_registered_metric_and_predictor_appear_in_every_output(data_dir, tmp_
         runs, table = [], {}
         for name in ("reference", "inverted"):
             preds = tmp_path / "predictions" / name
-            run = predict(name, data_dir, preds, PredictContext(severity=0.0), progress=False)
+            run = predict(name, data_dir, preds, PredictContext(severity=0.0), run=RunOptions(progress=False))
             assert run.written == ["00015"] and not run.failed
-            summary = evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(), progress=False,
-                               protocol="lossless")  # the toy metric is hand-computed on the decoded frames
+            summary = evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(),
+                               protocol="lossless", run=RunOptions(progress=False))  # the toy metric is hand-computed on the decoded frames
             assert not summary.failed
             table[name] = [summary.results["overall"][m]["mean"] for m in METRICS]
             runs.append(summary.out_dir)
@@ -83,17 +84,17 @@ def test_a_registered_metric_and_predictor_appear_in_every_output(data_dir, tmp_
 
 def test_a_bug_inside_a_metric_stops_evaluate(data_dir, tmp_path):
     preds = tmp_path / "predictions" / "reference"
-    predict("reference", data_dir, preds, PredictContext(severity=0.0), progress=False)
+    predict("reference", data_dir, preds, PredictContext(severity=0.0), run=RunOptions(progress=False))
     with METRICS.added(MetricInfo("broken", f"{__name__}:broken_metric", "Broken", False, "appearance", "a bug")):
         with pytest.raises(TypeError, match="has no len"):
-            evaluate(preds, data_dir, tmp_path / "runs" / "reference", nets=FeatureNets(), progress=False)
+            evaluate(preds, data_dir, tmp_path / "runs" / "reference", nets=FeatureNets(), run=RunOptions(progress=False))
 
 
 def test_a_bad_example_is_recorded_and_the_run_goes_on(data_dir, tmp_path):
     preds = tmp_path / "predictions" / "broken-video"
     preds.mkdir(parents=True)
     (preds / "00015.mp4").write_bytes(b"not a video")
-    summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), progress=False)
+    summary = evaluate(preds, data_dir, tmp_path / "runs" / "broken", nets=FeatureNets(), run=RunOptions(progress=False))
     assert list(summary.failed) == ["00015"] and "00015.mp4" in summary.failed["00015"]
 
 

@@ -16,6 +16,7 @@ pytest.importorskip("transformers")
 from fixtures import tiny_perception  # noqa: E402
 from fixtures import tiny_video_models as tiny  # noqa: E402
 
+from rigidbench.driver import RunOptions  # noqa: E402
 from rigidbench.benchmark import NEGATIVE_PROMPT  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample  # noqa: E402
 from rigidbench.metrics import METRICS  # noqa: E402
@@ -55,7 +56,7 @@ def test_a_local_model_predicts_validates_and_scores(name, data_dir, tmp_path, o
     build, options, fps = CASES[name]
     ctx = PredictContext(seed=4, options=MappingProxyType({"pipeline": build(), **options}))
     preds = tmp_path / "predictions" / name
-    run = predict(name, data_dir, preds, ctx, progress=False)
+    run = predict(name, data_dir, preds, ctx, run=RunOptions(progress=False))
     assert not run.failed and run.written == ["00015"]
 
     info = probe_video(preds / "00015.mp4")
@@ -81,12 +82,12 @@ def test_a_local_model_predicts_validates_and_scores(name, data_dir, tmp_path, o
     assert report.ok and not report.errors and "00015" in report.matched
 
     # a rerun with the same settings skips the finished example
-    assert predict(name, data_dir, preds, ctx, progress=False).skipped == ["00015"]
+    assert predict(name, data_dir, preds, ctx, run=RunOptions(progress=False)).skipped == ["00015"]
 
     models = tiny_perception.tiny_models()
     summary = evaluate(preds, data_dir, tmp_path / "runs" / name, perception="neural",
                        perception_options={"models": models, "depth_input_size": 56, "device": "cpu"},
-                       nets=FeatureNets(), progress=False, first_frame_check=False)
+                       nets=FeatureNets(), first_frame_check=False, run=RunOptions(progress=False))
     assert not summary.failed and summary.evaluated == ["00015"]
     assert summary.results["protocol"]["first_frame_check"] is False
     record = json.loads((summary.out_dir / "examples" / "00015.json").read_text())

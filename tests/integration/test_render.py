@@ -25,6 +25,7 @@ import pytest
 from fixtures.blender import requires_bpy
 from fixtures.scenes import make_spec, object_body, ramp_body
 
+from rigidbench.driver import RunOptions
 from rigidbench import manifest
 from rigidbench.blender.camera import framing
 from rigidbench.config import registry as load_registry
@@ -303,8 +304,9 @@ def test_rerun_skips_complete_bundles(rendered, reg, task_rows):
 
     path, _ = rendered["free_fall"]
     before = (path / B.METADATA_FILE).stat().st_mtime_ns
-    done, failures = render_rows([task_rows["free_fall"]], reg, path.parents[1], quality=QUALITY, progress=False)
-    assert done == [] and failures == []
+    [report] = render_rows([task_rows["free_fall"]], reg, path.parents[1], quality=QUALITY,
+                           run=RunOptions(progress=False))
+    assert report.ran == [] and report.failed == {}
     assert (path / B.METADATA_FILE).stat().st_mtime_ns == before
 
 
@@ -331,13 +333,14 @@ def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows
         from pathlib import Path
         from rigidbench import manifest
         from rigidbench.config import registry
+        from rigidbench.driver import RunOptions
         from rigidbench.stages.render import render_rows
         reg = registry()
         rows = manifest.select(manifest.rows("eval", reg), ["{row.sample_id}"])
-        done, failures = render_rows(rows, reg, Path(r"{data}"), quality="{QUALITY}", progress=False)
-        for f in failures:
-            print("FAILED", f.sample_id, f.reason)
-        sys.exit(1 if failures else 0)
+        [report] = render_rows(rows, reg, Path(r"{data}"), quality="{QUALITY}", run=RunOptions(progress=False))
+        for sample_id, reason in report.failed.items():
+            print("FAILED", sample_id, reason)
+        sys.exit(report.exit_status())
     """)
     env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
     parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -358,8 +361,8 @@ def test_killed_worker_then_rerun_gives_the_same_bundle(rendered, reg, task_rows
     assert not (data / row.split / row.sample_id).exists()
     assert tmp_dir.exists()  # the half-written bundle is left where a rerun will replace it
 
-    done, failures = render_rows([row], reg, data, quality=QUALITY, progress=False)
-    assert done == [row.sample_id] and failures == []
+    [report] = render_rows([row], reg, data, quality=QUALITY, run=RunOptions(progress=False))
+    assert report.ran == [row.sample_id] and report.failed == {}
     assert not tmp_dir.exists()
     again = B.Sample(data / row.split / row.sample_id)
     assert B.check_bundle(again.path) == []
@@ -397,11 +400,12 @@ def test_failing_example_is_reported_and_the_others_continue(reg, task_rows, tmp
     (tmp_path / "cfg" / "scenes" / f"{bad.scene}.yaml").write_text(yaml.safe_dump(scene))
     reg2 = load_registry([tmp_path / "cfg"])
     data = tmp_path / "data"
-    done, failures = render_rows([bad, good], reg2, data, quality=QUALITY, config_dirs=[tmp_path / "cfg"],
-                                 progress=False)
+    [report] = render_rows([bad, good], reg2, data, quality=QUALITY, config_dirs=[tmp_path / "cfg"],
+                           run=RunOptions(progress=False))
+    done, failures = report.ran, list(report.failed.items())
     assert done == [good.sample_id]
-    assert [f.sample_id for f in failures] == [bad.sample_id]
-    assert failures[0].reason.startswith("SpecError") and bad.sample_id in failures[0].reason
+    assert [sample_id for sample_id, _ in failures] == [bad.sample_id]
+    assert failures[0][1].startswith("SpecError") and bad.sample_id in failures[0][1]
     assert not (data / bad.split / bad.sample_id).exists()
     assert B.check_bundle(data / good.split / good.sample_id) == []
 

@@ -9,6 +9,7 @@ import pytest
 from fixtures import TESTS_DIR
 from fixtures.blender import render_eval_examples, requires_bpy
 
+from rigidbench.driver import RunOptions, Selection
 from rigidbench import manifest
 from rigidbench.config import registry
 from rigidbench.executors import RayExecutor, Shard
@@ -49,8 +50,9 @@ def _arrays(path: Path) -> dict:
 def test_ray_renders_the_same_bundles_as_a_local_run(cluster, local_data, tmp_path):
     reg = registry()
     rows = manifest.select(manifest.eval_rows(reg), list(IDS[:1]), None)
-    done, failures = render_rows(rows, reg, tmp_path, quality="test", progress=False, executor=RayExecutor(workers=1))
-    assert done == list(IDS[:1]) and not failures
+    [report] = render_rows(rows, reg, tmp_path, quality="test",
+                           run=RunOptions(executor=RayExecutor(workers=1), progress=False))
+    assert report.ran == list(IDS[:1]) and not report.failed
     for sample_id in IDS[:1]:
         for name in ("masks.npz", "depth.npz", "trajectories.npz", "tracks.npz"):
             ours, theirs = _arrays(tmp_path / "eval" / sample_id / name), _arrays(local_data / sample_id / name)
@@ -61,12 +63,12 @@ def test_ray_renders_the_same_bundles_as_a_local_run(cluster, local_data, tmp_pa
 
 def test_ray_and_shards_score_exactly_like_a_local_run(cluster, local_data, tmp_path):
     preds = tmp_path / "predictions"
-    assert not predict("static", local_data, preds, PredictContext(severity=0.5), progress=False).failed
+    assert not predict("static", local_data, preds, PredictContext(severity=0.5), run=RunOptions(progress=False)).failed
     # The default feature networks everywhere (none are present here: LPIPS and IdDrift are skipped alike).
-    local = evaluate(preds, local_data, tmp_path / "local", progress=False)
-    on_ray = evaluate(preds, local_data, tmp_path / "ray", executor=RayExecutor(workers=2), progress=False)
+    local = evaluate(preds, local_data, tmp_path / "local", run=RunOptions(progress=False))
+    on_ray = evaluate(preds, local_data, tmp_path / "ray", run=RunOptions(executor=RayExecutor(workers=2), progress=False))
     for shard in (Shard(i, 3) for i in range(3)):
-        evaluate(preds, local_data, tmp_path / "shards", shard=shard, progress=False)
+        evaluate(preds, local_data, tmp_path / "shards", run=RunOptions(Selection.of(None, None, shard), progress=False))
     assert sorted(local.evaluated) == sorted(on_ray.evaluated) == list(IDS)
     for sample_id in IDS:
         records = [json.loads((tmp_path / run / "examples" / f"{sample_id}.json").read_text())
@@ -81,7 +83,7 @@ def test_ray_and_shards_score_exactly_like_a_local_run(cluster, local_data, tmp_
             np.testing.assert_array_equal(arrays[0][key], arrays[1][key])
             np.testing.assert_array_equal(arrays[0][key], arrays[2][key])
     # A final run over the whole split reuses every shard's example and aggregates them.
-    final = evaluate(preds, local_data, tmp_path / "shards", progress=False)
+    final = evaluate(preds, local_data, tmp_path / "shards", run=RunOptions(progress=False))
     assert sorted(final.reused) == list(IDS) and not final.evaluated
     assert final.results["overall"] == local.results["overall"]
 
@@ -114,8 +116,7 @@ def test_a_worker_killed_mid_example_still_yields_every_example_once(cluster, lo
                          writes_state=True)
     out = tmp_path / "predictions"
     with PREDICTORS.added(info):
-        summary = predict("dies-once", local_data, out, PredictContext(), progress=False,
-                          executor=RayExecutor(workers=1, max_retries=3))
+        summary = predict("dies-once", local_data, out, PredictContext(), run=RunOptions(executor=RayExecutor(workers=1, max_retries=3), progress=False))
     assert summary.written == list(IDS) and not summary.failed
     videos = sorted(p.name for p in out.glob("*.mp4"))
     assert videos == [f"{i}.mp4" for i in IDS]

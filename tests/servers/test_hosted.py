@@ -21,6 +21,7 @@ pytest.importorskip("PIL")
 
 from PIL import Image  # noqa: E402
 
+from rigidbench.driver import RunOptions  # noqa: E402
 from rigidbench.benchmark import NEGATIVE_PROMPT, full_prompt  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
@@ -87,7 +88,7 @@ def config(tmp_path):
 def run(name, split, out, config_dir, dry_run=False, **options):
     options.setdefault("concurrency", 2)
     ctx = PredictContext(RunContext(config_dirs=(config_dir,)), seed=7, options=options)
-    return predict(name, split, out, ctx, progress=False, dry_run=dry_run)
+    return predict(name, split, out, ctx, dry_run=dry_run, run=RunOptions(progress=False))
 
 
 def generation(out) -> dict:

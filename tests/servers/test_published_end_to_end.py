@@ -94,7 +94,7 @@ def test_from_a_url_to_results_that_name_the_dataset(served, tmp_path, monkeypat
     extracted = tmp_path / "data" / ".download" / "test-eval-v0.1" / "extracted"
     capsys.readouterr()
     assert main(["--config", str(config), "import", str(extracted), "--data", "data", "--dataset", "test-eval"]) == 0
-    assert "imported 0 samples, 3 unchanged" in capsys.readouterr().out
+    assert "import: 0 made, 3 up to date, 0 failed of 3 example(s)" in capsys.readouterr().out
     assert Sample(tmp_path / "data" / "eval" / "00000").metadata["source"]["verified"] is True
     # the extraction may be deleted after the import (README): the bundles keep their files, nothing is fetched
     shutil.rmtree(extracted)

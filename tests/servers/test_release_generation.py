@@ -23,6 +23,7 @@ pytest.importorskip("transformers")
 from fixtures import tiny_video_models as tiny  # noqa: E402
 from fixtures.replicate_server import make_split  # noqa: E402
 
+from rigidbench.driver import RunOptions, Selection  # noqa: E402
 from rigidbench.errors import UserError  # noqa: E402
 from rigidbench.folders import GENERATION_FILE  # noqa: E402
 from rigidbench.predictors import PREDICTORS, SEED_RULE, PredictContext, example_seed  # noqa: E402
@@ -170,7 +171,7 @@ def record_noise(pipe) -> list:
 
 def run_stage(split, out, seed, pipe, ids=None):
     ctx = PredictContext(seed=seed, options=MappingProxyType({"pipeline": pipe, **WAN_SIZE}))
-    summary = predict("wan-2.2", split, out, ctx, ids=ids, progress=False)
+    summary = predict("wan-2.2", split, out, ctx, run=RunOptions(Selection.of(ids), progress=False))
     assert not summary.failed, summary.failed
     return json.loads((out / GENERATION_FILE).read_text())
 
@@ -199,12 +200,13 @@ def test_videos_of_the_earlier_one_seed_rule_are_not_reused(tmp_path):
     out = tmp_path / "out"
     pipe = tiny.tiny_wan()
     run_stage(split, out, 0, pipe)
-    settings = json.loads((out / ".predictor.json").read_text())
+    settings = json.loads((out / "generation.json").read_text())["settings"]
     del settings["seeds"]
-    (out / ".predictor.json").write_text(json.dumps(settings) + "\n")
+    (out / ".predictor.json").write_text(json.dumps(settings) + "\n")  # how folders before ledgers said it
+    (out / "generation.json").unlink()
     shutil.rmtree(out / ".stages")  # such a folder has no ledger either: only .predictor.json says how it was made
     ctx = PredictContext(seed=0, options=MappingProxyType({"pipeline": pipe, **WAN_SIZE}))
-    assert predict("wan-2.2", split, out, ctx, progress=False).skipped == []
+    assert predict("wan-2.2", split, out, ctx, run=RunOptions(progress=False)).skipped == []
 
 
 # -- 3. storage ---------------------------------------------------------------------------------------------

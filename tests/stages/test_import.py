@@ -15,7 +15,7 @@ from fixtures import published_set as ps  # noqa: E402
 
 from rigidbench.config import registry  # noqa: E402
 from rigidbench.datasets.convert import find_published_root
-from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.driver import RunOptions, Selection, ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.errors import BundleError, UserError  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle, resolve_split_dir  # noqa: E402
 from rigidbench.stages.import_set import import_published  # noqa: E402
@@ -32,14 +32,14 @@ def published(tmp_path_factory):
 @pytest.fixture(scope="module")
 def imported(published, tmp_path_factory):
     data = tmp_path_factory.mktemp("data")
-    summary = import_published(published.parent, data, dataset=IDENTITY, registry=registry(), progress=False)
+    summary = import_published(published.parent, data, dataset=IDENTITY, registry=registry(), run=RunOptions(progress=False))
     return data, summary
 
 
 def test_every_sample_becomes_a_valid_bundle(imported):
     data, summary = imported
-    assert summary.imported == ["00000", "00001", "00002"] and not summary.failed
-    for sample_id in summary.imported:
+    assert summary.ran == ["00000", "00001", "00002"] and not summary.failed
+    for sample_id in summary.ran:
         assert check_bundle(data / "eval" / sample_id) == []
     assert resolve_split_dir(data) == data / "eval"
 
@@ -122,8 +122,8 @@ def test_other_png_layouts_are_converted_to_8_bit_rgb(tmp_path):
     cv2.imwrite(str(frames / "00002.png"), deep[..., ::-1])
     Image.fromarray(rgb).convert("P", palette=Image.Palette.ADAPTIVE).save(frames / "00003.png")
     palette = np.asarray(Image.open(frames / "00003.png").convert("RGB"))
-    summary = import_published(root, tmp_path / "data", progress=False)
-    assert summary.imported == ["00000"], summary.failed
+    summary = import_published(root, tmp_path / "data", run=RunOptions(progress=False))
+    assert summary.ran == ["00000"], summary.failed
     out = tmp_path / "data" / "eval" / "00000" / "frames"
     for name, want in (("00002.png", rgb), ("00003.png", palette)):
         assert not os.path.samefile(out / name, frames / name)
@@ -152,22 +152,22 @@ def test_no_scene_spec_is_one_clear_error(imported):
 def test_both_root_layouts_and_a_top_folder_are_found(tmp_path):
     ps.write_set(tmp_path / "a" / "rigidbench-eval-v1.1", ps.DEFAULT_SAMPLES[:1], layout="eval")
     assert find_published_root(tmp_path / "a") == tmp_path / "a" / "rigidbench-eval-v1.1"
-    summary = import_published(tmp_path / "a", tmp_path / "data", progress=False)
-    assert summary.imported == ["00000"] and check_bundle(tmp_path / "data" / "eval" / "00000") == []
+    summary = import_published(tmp_path / "a", tmp_path / "data", run=RunOptions(progress=False))
+    assert summary.ran == ["00000"] and check_bundle(tmp_path / "data" / "eval" / "00000") == []
     with pytest.raises(UserError, match="no published RigidBench evaluation set"):
         find_published_root(tmp_path / "data")
 
 
 def test_a_rerun_skips_unchanged_and_redoes_changed_samples(tmp_path):
     root = ps.write_set(tmp_path / "src", ps.DEFAULT_SAMPLES[:2])
-    first = import_published(root, tmp_path / "data", progress=False)
-    assert first.imported == ["00000", "00001"]
+    first = import_published(root, tmp_path / "data", run=RunOptions(progress=False))
+    assert first.ran == ["00000", "00001"]
     stamp = (tmp_path / "data" / "eval" / "00000" / "tracks.npz").stat().st_mtime_ns
     prompt = root / "samples" / "00001" / "prompt.txt"
     prompt.write_text("A different prompt for this sample.")
     (tmp_path / "data" / "eval" / ".00000.tmp").mkdir()  # left by a killed import
-    second = import_published(root, tmp_path / "data", progress=False)
-    assert second.unchanged == ["00000"] and second.imported == ["00001"]
+    second = import_published(root, tmp_path / "data", run=RunOptions(progress=False))
+    assert second.reused == ["00000"] and second.ran == ["00001"]
     assert (tmp_path / "data" / "eval" / "00000" / "tracks.npz").stat().st_mtime_ns == stamp
     assert Sample(tmp_path / "data" / "eval" / "00001").prompt == "A different prompt for this sample."
     assert not (tmp_path / "data" / "eval" / ".00000.tmp").exists()
@@ -178,24 +178,24 @@ def test_import_resumes_on_the_stage_driver(tmp_path):
     identity re-imports every sample and says why; a bundle imported before ledgers existed is adopted."""
     root = ps.write_set(tmp_path / "src", ps.DEFAULT_SAMPLES[:2])
     split = tmp_path / "data" / "eval"
-    clean = import_published(root, tmp_path / "clean", progress=False)
-    first = import_published(root, tmp_path / "data", progress=False, dataset={"dataset": "a"})
-    assert first.imported == ["00000", "00001"]
+    clean = import_published(root, tmp_path / "clean", run=RunOptions(progress=False))
+    first = import_published(root, tmp_path / "data", dataset={"dataset": "a"}, run=RunOptions(progress=False))
+    assert first.ran == ["00000", "00001"]
     ledger_path(split, "import", "00001").unlink()  # the kill: 00001 was written, its entry was not
     staging = staging_path(split, "import", "00000")
     staging.mkdir(parents=True)
     (staging / "half-written.npz").write_bytes(b"x")
     stamp = (split / "00000" / "tracks.npz").stat().st_mtime_ns
-    again = import_published(root, tmp_path / "data", progress=False, dataset={"dataset": "a"})
-    assert again.unchanged == ["00000", "00001"] and not again.imported  # 00001 adopted: same source digest
+    again = import_published(root, tmp_path / "data", dataset={"dataset": "a"}, run=RunOptions(progress=False))
+    assert again.reused == ["00000", "00001"] and not again.ran  # 00001 adopted: same source digest
     assert not staging.exists() and (split / "00000" / "tracks.npz").stat().st_mtime_ns == stamp
-    other = import_published(root, tmp_path / "data", progress=False, dataset={"dataset": "b"})
-    assert other.imported == ["00000", "00001"]
+    other = import_published(root, tmp_path / "data", dataset={"dataset": "b"}, run=RunOptions(progress=False))
+    assert other.ran == ["00000", "00001"]
     assert json.loads((split / "00000" / "metadata.json").read_text())["source"]["dataset"] == "b"
     for name in ("masks.npz", "depth.npz", "trajectories.npz", "tracks.npz"):
         a, b = np.load(split / "00001" / name), np.load(tmp_path / "clean" / "eval" / "00001" / name)
         assert all(np.array_equal(a[k], b[k]) for k in b.files)
-    assert clean.imported == ["00000", "00001"]
+    assert clean.ran == ["00000", "00001"]
 
 
 @pytest.mark.parametrize("damage", ["masks.npz", "depth.npz", "trajectories.npz", "metadata.json"])
@@ -203,8 +203,8 @@ def test_one_damaged_sample_fails_alone_with_its_file_named(tmp_path, damage):
     root = ps.write_set(tmp_path / "src")
     path = root / "samples" / "00001" / damage
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    summary = import_published(root, tmp_path / "data", progress=False)
-    assert summary.imported == ["00000", "00002"] and list(summary.failed) == ["00001"]
+    summary = import_published(root, tmp_path / "data", run=RunOptions(progress=False))
+    assert summary.ran == ["00000", "00002"] and list(summary.failed) == ["00001"]
     assert damage in summary.failed["00001"] and "extract the archive again" in summary.failed["00001"]
     assert not (tmp_path / "data" / "eval" / "00001").exists()
     # no temporaries: only the stage ledger (which records the failure) is hidden there
@@ -244,24 +244,24 @@ def test_a_truncated_frame_beside_a_valid_video_fails_its_sample_naming_the_file
     root = ps.write_set(tmp_path / "src", ps.DEFAULT_SAMPLES[:2])
     frame = root / "samples" / "00000" / "frames" / "00007.png"  # an RGB PNG: linked, so only a decode finds it
     frame.write_bytes(frame.read_bytes()[: frame.stat().st_size * 2 // 3])
-    summary = import_published(root, tmp_path / "data", progress=False)
-    assert summary.imported == ["00001"] and list(summary.failed) == ["00000"]
+    summary = import_published(root, tmp_path / "data", run=RunOptions(progress=False))
+    assert summary.ran == ["00001"] and list(summary.failed) == ["00000"]
     assert str(frame) in summary.failed["00000"] and "cannot be decoded" in summary.failed["00000"]
     assert not (tmp_path / "data" / "eval" / "00000").exists()
 
 
 def test_a_same_size_change_of_a_source_file_is_imported_again(tmp_path):
     root = ps.write_set(tmp_path / "src", ps.DEFAULT_SAMPLES[:1])
-    assert import_published(root, tmp_path / "data", progress=False).imported == ["00000"]
+    assert import_published(root, tmp_path / "data", run=RunOptions(progress=False)).ran == ["00000"]
     prompt = root / "samples" / "00000" / "prompt.txt"
     text = prompt.read_text()
     changed = text.replace("falls onto", "drops onto")
     assert changed != text and len(changed) == len(text)  # the same size: only the content tells
     prompt.write_text(changed)
-    again = import_published(root, tmp_path / "data", progress=False)
-    assert again.imported == ["00000"] and not again.unchanged
+    again = import_published(root, tmp_path / "data", run=RunOptions(progress=False))
+    assert again.ran == ["00000"] and not again.reused
     assert Sample(tmp_path / "data" / "eval" / "00000").prompt == changed
-    assert import_published(root, tmp_path / "data", progress=False).unchanged == ["00000"]
+    assert import_published(root, tmp_path / "data", run=RunOptions(progress=False)).reused == ["00000"]
 
 
 def test_a_second_import_into_the_same_data_is_refused_with_one_line(tmp_path, capsys):
@@ -279,7 +279,7 @@ def test_a_second_import_into_the_same_data_is_refused_with_one_line(tmp_path, c
         err = capsys.readouterr().err
         assert "another rigidbench download or import" in err and len(err.strip().splitlines()) == 1
         with pytest.raises(DataBusyError):
-            import_published(root, data, progress=False)
+            import_published(root, data, run=RunOptions(progress=False))
         assert not (data / "eval" / "00000").exists()
     assert main(["import", str(root), "--data", str(data)]) == 0  # released: the next run goes ahead
 
@@ -302,9 +302,9 @@ def test_data_naming_a_file_is_a_clear_error(tmp_path, capsys, src_kind):
     err = capsys.readouterr().err
     assert str(tmp_path / "afile") in err and "Traceback" not in err and "NotADirectoryError" not in err
     with pytest.raises(UserError, match="a file, not a folder"):
-        import_published(root, tmp_path / "afile", progress=False)
+        import_published(root, tmp_path / "afile", run=RunOptions(progress=False))
     with pytest.raises(UserError, match="a part of this path is a file"):
-        import_published(root, tmp_path / "afile" / "data", progress=False)
+        import_published(root, tmp_path / "afile" / "data", run=RunOptions(progress=False))
 
 
 def test_parts_messages_name_what_is_missing_or_stray(tmp_path):
@@ -392,18 +392,18 @@ def test_importing_another_source_into_the_same_data_is_refused_or_replaced(tmp_
     one = ps.write_set(tmp_path / "one", ps.DEFAULT_SAMPLES[:1])
     data = tmp_path / "data"
     other = {**IDENTITY, "version": "1.2", "md5": "0" * 32}
-    assert import_published(two, data, dataset=IDENTITY, progress=False).imported == ["00000", "00001"]
-    assert import_published(two, data, dataset=IDENTITY, progress=False, limit=1).unchanged == ["00000"]  # a subset
+    assert import_published(two, data, dataset=IDENTITY, run=RunOptions(progress=False)).ran == ["00000", "00001"]
+    assert import_published(two, data, dataset=IDENTITY, run=RunOptions(Selection.of(None, 1), progress=False)).reused == ["00000"]  # a subset
     with pytest.raises(UserError) as err:  # 00001 is not in the new source: the two sets would be mixed
-        import_published(one, data, dataset=IDENTITY, progress=False)
+        import_published(one, data, dataset=IDENTITY, run=RunOptions(progress=False))
     assert "00001" in str(err.value) and "--replace" in str(err.value) and "\n" not in str(err.value)
     with pytest.raises(UserError, match="00001"):  # another release of the same ids, only 00000 imported again
-        import_published(two, data, dataset=other, progress=False, ids=["00000"])
+        import_published(two, data, dataset=other, run=RunOptions(Selection.of(["00000"]), progress=False))
     assert Sample(data / "eval" / "00000").metadata["source"]["version"] == "1.1"  # nothing changed
     assert main(["import", str(one), "--data", str(data)]) == 2
     assert "--replace" in capsys.readouterr().err
-    summary = import_published(one, data, dataset=other, progress=False, replace=True)
-    assert summary.imported == ["00000"]
+    summary = import_published(one, data, dataset=other, replace=True, run=RunOptions(progress=False))
+    assert summary.ran == ["00000"]
     assert sorted(p.name for p in (data / "eval").iterdir() if not p.name.startswith(".")) == ["00000"]
     assert Sample(data / "eval" / "00000").metadata["source"]["version"] == "1.2"
     assert read_ledger(data / "eval", "import", "00001") is None
@@ -426,11 +426,11 @@ def test_the_import_refuses_to_start_without_the_disk_it_writes(tmp_path, monkey
     real = shutil.disk_usage
     monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=writes + DISK_MARGIN_BYTES - 1))
     with pytest.raises(UserError, match="not enough free disk space") as err:
-        import_published(root, tmp_path / "data", progress=False)
+        import_published(root, tmp_path / "data", run=RunOptions(progress=False))
     assert "2 sample(s)" in str(err.value)
     assert not [p for p in (tmp_path / "data" / "eval").iterdir() if not p.name.startswith(".")]
     monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=writes + DISK_MARGIN_BYTES))
-    assert import_published(root, tmp_path / "data", progress=False).imported == ["00000", "00001"]
+    assert import_published(root, tmp_path / "data", run=RunOptions(progress=False)).ran == ["00000", "00001"]
     shutil.rmtree(root)  # what the README says may be deleted after the import
     for sample in ("00000", "00001"):
         bundle = tmp_path / "data" / "eval" / sample

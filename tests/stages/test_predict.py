@@ -10,12 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,65 +19,23 @@ import yaml
 pytest.importorskip("av")
 pytest.importorskip("PIL")
 
-from fixtures import published_set as ps  # noqa: E402
+from fixtures.predicting import IDS, SLOW, Counted, generation, run  # noqa: E402
+from fixtures.children import kill_when, python  # noqa: E402
+from fixtures.predicting import imported, split  # noqa: E402,F401 (pytest fixtures)
 from PIL import Image  # noqa: E402
 from fixtures.replicate_server import make_split  # noqa: E402
 from fixtures.replicate_server import server, video  # noqa: E402,F401 (pytest fixtures)
 
 from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
-from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.driver import RunOptions, ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.errors import UserError  # noqa: E402
-from rigidbench.folders import GENERATION_FILE, RECORDS_DIR  # noqa: E402
-from rigidbench.groundtruth.bundle import Sample  # noqa: E402
-from rigidbench.predictors import FailureMode, Kind, PredictContext, PredictorInfo, example_seed  # noqa: E402
-from rigidbench.predictors import image_space  # noqa: E402
-from rigidbench.stages.import_set import import_published  # noqa: E402
-from rigidbench.stages.predict import STAGE, predict, write_prediction  # noqa: E402
+from rigidbench.folders import GENERATION_FILE  # noqa: E402
+from rigidbench.predictors import PredictContext, example_seed  # noqa: E402
+from rigidbench.stages.predict import STAGE, predict  # noqa: E402
 from rigidbench.video import read_video  # noqa: E402
 
-IDS = ["00000", "00001", "00002"]
-SLOW = "rigidbench.predictors.image_space:slow"
 CHANGED = "its inputs or settings changed"
-
-
-@pytest.fixture(scope="module")
-def imported(tmp_path_factory):
-    """Three bundles imported from the synthetic published set (no Blender anywhere)."""
-    root = tmp_path_factory.mktemp("published")
-    summary = import_published(ps.write_set(root / "set"), root / "data", progress=False)
-    assert not summary.failed
-    return root / "data" / "eval"
-
-
-@pytest.fixture
-def split(imported, tmp_path):
-    """A private copy of the imported split (tests change its inputs)."""
-    return Path(shutil.copytree(imported, tmp_path / "eval", ignore=shutil.ignore_patterns(".*")))
-
-
-class Counted:
-    """The "slow" failure mode, counting the examples it is asked for."""
-
-    def __init__(self):
-        self.calls: list[str] = []
-
-    def __call__(self, sample, severity):
-        self.calls.append(Path(sample.path).name)
-        return image_space.slow(sample, severity)
-
-    def predictor(self) -> FailureMode:
-        info = PredictorInfo("slow", SLOW, "playback slower, counted", Kind.FAILURE_MODE, writes_state=True)
-        return FailureMode(info, self)
-
-
-def run(split, out, counter: Counted, severity=0.5, **kwargs):
-    return predict("slow", split, out, PredictContext(severity=severity, seed=kwargs.pop("seed", 0)),
-                   progress=False, predictor=counter.predictor(), **kwargs)
-
-
-def generation(out) -> dict:
-    return json.loads((out / GENERATION_FILE).read_text())
 
 
 def outputs(out: Path) -> dict:
@@ -128,10 +80,10 @@ def test_a_rerun_predicts_nothing_again(split, tmp_path):
         entry = read_ledger(out, STAGE, sample_id)
         assert entry["status"] == "succeeded" and len(entry["key"]) == 64
         assert (out / f"{sample_id}.mp4").is_file() and (out / f"{sample_id}.state.npz").is_file()
-        record = json.loads((out / RECORDS_DIR / f"{sample_id}.json").read_text())
-        assert record["entry"]["status"] == "succeeded" and record["entry"] == generation(out)["examples"][sample_id]
-    assert json.loads((out / ".predictor.json").read_text()) == {"predictor": "slow", "target": SLOW,
-                                                                  "severity": 0.5}
+        assert entry["result"]["status"] == "succeeded" and entry["result"] == generation(out)["examples"][sample_id]
+    assert generation(out)["settings"] == {"predictor": "slow", "target": SLOW, "severity": 0.5}
+    assert sorted(p.name for p in out.iterdir()) == sorted([".stages", GENERATION_FILE, *(f"{i}.mp4" for i in IDS),
+                                                           *(f"{i}.state.npz" for i in IDS)])  # two records, no more
     staging = staging_path(out, STAGE, "00000").parent
     assert not staging.exists() or not any(staging.iterdir())  # committed: nothing left behind
     before = snapshot(out)
@@ -139,8 +91,7 @@ def test_a_rerun_predicts_nothing_again(split, tmp_path):
     assert again.written == IDS and again.skipped == IDS and not again.redone
     assert counter.calls == IDS  # the predictor was not asked again
     after = snapshot(out)
-    assert {k: v for k, v in after.items() if k.endswith((".mp4", ".npz"))} == \
-           {k: v for k, v in before.items() if k.endswith((".mp4", ".npz"))}  # untouched
+    assert after == before  # nothing touched: videos, states, ledger, generation.json
 
 
 def test_changed_settings_redo_exactly_the_examples_made_with_other_ones(split, tmp_path, caplog):
@@ -160,7 +111,7 @@ def test_changed_settings_redo_exactly_the_examples_made_with_other_ones(split, 
     full = run(split, out, counter, severity=1.0)
     assert full.skipped == ["00000", "00002"] and full.redone == {"00001": CHANGED}
     assert counter.calls == IDS * 2 + ["00001", "00001"]
-    assert json.loads((out / ".predictor.json").read_text())["severity"] == 1.0
+    assert generation(out)["settings"]["severity"] == 1.0 and list(generation(out)["examples"]) == IDS
     # the failure mode takes no seed: another --seed changes nothing it makes
     assert run(split, out, counter, severity=1.0, seed=99).skipped == IDS
     assert counter.calls == IDS * 2 + ["00001", "00001"]
@@ -233,23 +184,14 @@ def slow(sample, severity):
 image_space.slow = slow
 from rigidbench.stages.predict import predict
 from rigidbench.predictors import PredictContext
-predict("slow", split, out, PredictContext(severity=0.5), progress=False)
+from rigidbench.driver import RunOptions
+predict("slow", split, out, PredictContext(severity=0.5), run=RunOptions(progress=False))
 """
 
 
 def test_a_killed_run_resumes_with_the_outputs_of_a_clean_run(split, tmp_path):
     out, mark = tmp_path / "out", tmp_path / "started"
-    proc = subprocess.Popen([sys.executable, "-c", KILLED_RUN, str(split), str(out), str(mark)],
-                            start_new_session=True)
-    try:
-        end = time.monotonic() + 60
-        while not mark.exists():
-            assert proc.poll() is None, "the run ended before it reached the second example"
-            assert time.monotonic() < end, "the run never reached the second example"
-            time.sleep(0.05)
-    finally:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
+    kill_when(python(KILLED_RUN, split, out, mark), mark)
     assert read_ledger(out, STAGE, "00000")["status"] == "succeeded" and (out / "00000.mp4").is_file()
     assert read_ledger(out, STAGE, "00001") is None and not (out / "00001.mp4").exists()
     assert staging_path(out, STAGE, "00001").is_dir()  # what the killed example had begun
@@ -264,38 +206,6 @@ def test_a_killed_run_resumes_with_the_outputs_of_a_clean_run(split, tmp_path):
     assert_same(outputs(out), outputs(clean))
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == \
            sorted(p.name for p in clean.iterdir() if not p.name.startswith("."))
-
-
-def legacy_folder(split: Path, out: Path, severity: float = 0.5, ids=IDS) -> None:
-    """A predictions folder as the stage wrote it before ledgers: videos, states, .predictor.json."""
-    for sample_id in ids:
-        sample = Sample(split / sample_id)
-        write_prediction(image_space.slow(sample, severity), out, sample_id, sample.fps)
-    (out / ".predictor.json").write_text(json.dumps({"predictor": "slow", "target": SLOW, "severity": severity}))
-
-
-def test_a_folder_written_before_ledgers_is_taken_over_without_predicting_again(split, tmp_path):
-    out, counter = tmp_path / "out", Counted()
-    legacy_folder(split, out)
-    (out / "00002.state.npz").unlink()  # one example lacks its state: it is made again
-    stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("*.mp4")}
-    planned = run(split, out, counter, dry_run=True)
-    assert planned.skipped == ["00000", "00001"] and planned.planned == ["00002"]
-    assert not (out / ".stages").exists() and not (out / GENERATION_FILE).exists()  # a dry run writes nothing
-    summary = run(split, out, counter)
-    assert summary.skipped == ["00000", "00001"] and summary.written == IDS and counter.calls == ["00002"]
-    assert {n: (out / n).stat().st_mtime_ns for n in ("00000.mp4", "00001.mp4")} == \
-           {n: stamps[n] for n in ("00000.mp4", "00001.mp4")}
-    for sample_id in ("00000", "00001"):
-        entry = read_ledger(out, STAGE, sample_id)
-        assert entry["status"] == "succeeded" and entry["adopted"] is True
-        record = generation(out)["examples"][sample_id]  # a record rebuilt for the taken-over video
-        assert record["status"] == "succeeded" and "recovered" in record
-    assert run(split, out, counter).skipped == IDS and counter.calls == ["00002"]
-    # a folder made with other settings is not taken over
-    other = tmp_path / "other"
-    legacy_folder(split, other, severity=0.2)
-    assert run(split, other, counter).skipped == [] and counter.calls == ["00002"] + IDS
 
 
 def test_a_dry_run_follows_the_run_rule_and_writes_nothing(split, tmp_path, capsys):
@@ -334,7 +244,7 @@ def hosted_config(tmp_path, seed_field=None) -> Path:
 
 def hosted(split, out, config, seed=7):
     ctx = PredictContext(RunContext(config_dirs=(config,)), seed=seed, options={"concurrency": 3})
-    return predict("grok-imagine", split, out, ctx, progress=False)
+    return predict("grok-imagine", split, out, ctx, run=RunOptions(progress=False))
 
 
 def test_hosted_reruns_pay_only_for_examples_whose_request_changed(server, tmp_path):

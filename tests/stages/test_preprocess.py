@@ -6,10 +6,6 @@ cache of the older shard layout is read and its clips adopted."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +14,10 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 
+from fixtures import child_env  # noqa: E402
+from fixtures.children import kill_when, python  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.driver import RunOptions, Selection, ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.executors import ProcessExecutor, Shard  # noqa: E402
 from rigidbench.stages.preprocess import PROMPT_FORMAT, run_preprocess  # noqa: E402
 from rigidbench.train import models  # noqa: E402
@@ -73,8 +71,9 @@ def calls(monkeypatch):
     return counts
 
 
-def preprocess(data, out, **options):
-    return run_preprocess(data, out, model="tiny", progress=False, **options)
+def preprocess(data, out, ids=None, shard=None, executor=None, **options):
+    run = RunOptions(Selection.of(ids, shard=shard), executor, progress=False)
+    return run_preprocess(data, out, model="tiny", run=run, **options)
 
 
 def cache_content(cache_dir) -> dict:
@@ -151,6 +150,7 @@ import time
 from pathlib import Path
 from rigidbench.train import models
 from rigidbench.stages.preprocess import run_preprocess
+from rigidbench.driver import RunOptions, Selection
 encode = models.encode_video
 def slow(vae, frames):
     if Path({str(tmp_path)!r}, "encoded").exists():
@@ -159,18 +159,9 @@ def slow(vae, frames):
     Path({str(tmp_path)!r}, "encoded").touch()
     return encode(vae, frames)
 models.encode_video = slow
-run_preprocess({str(data)!r}, {str(cache)!r}, model="tiny", progress=False, ids=["00000", "00002"])
+run_preprocess({str(data)!r}, {str(cache)!r}, model="tiny", run=RunOptions(Selection.of(["00000", "00002"]), progress=False))
 """
-    proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "OMP_NUM_THREADS": "1"})
-    try:
-        for _ in range(2400):
-            if marker.exists():
-                break
-            assert proc.poll() is None, "the run ended before it reached the last clip"
-            time.sleep(0.05)
-    finally:
-        proc.kill()
-        proc.wait()
+    kill_when(python(code), marker, timeout=120, env=child_env(OMP_NUM_THREADS="1"))
     assert read_ledger(cache, "preprocess", "00000")["status"] == "succeeded"
     assert read_ledger(cache, "preprocess", "00002") is None and staging_path(cache, "preprocess", "00002").is_dir()
     assert not (cache / "latents" / "00002.safetensors").exists()

@@ -16,6 +16,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
+from rigidbench.driver import RunOptions
 from rigidbench.evaluation.protocol import PROTOCOLS, get_protocol
 from rigidbench.metrics import MetricInputs
 from rigidbench.metrics.background import bgdrift
@@ -463,8 +464,8 @@ def reference_set(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("protocol")
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    import_published(published.parent, root / "data", registry=registry(), progress=False)
-    predict("reference", root / "data" / "eval", root / "reference", PredictContext(), progress=False)
+    import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False))
+    predict("reference", root / "data" / "eval", root / "reference", PredictContext(), run=RunOptions(progress=False))
     return root / "data", root / "reference"
 
 
@@ -494,7 +495,7 @@ def test_evaluate_threads_the_protocol_and_records_why_a_value_is_undefined(refe
     monkeypatch.setattr(protocol, "read_video", read_video)
     monkeypatch.setattr(runner, "score_inputs", score_inputs)
     data, preds = reference_set
-    summary = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False, protocol=name)
+    summary = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), protocol=name, run=RunOptions(progress=False))
     chosen = get_protocol(name)
     n = len(summary.evaluated)
     assert n >= 1 and decoders == [chosen.decoder] * n and rules == [chosen.edge_rules] * n

@@ -14,8 +14,6 @@ from rigidbench.folders import (BundleFolder, PredictionsFolder, RunFolder, Spli
 def test_the_file_names_are_the_ones_on_disk():
     pred = PredictionsFolder("p")
     assert pred.generation == Path("p/generation.json")
-    assert pred.record("00001") == Path("p/.generation/00001.json")
-    assert pred.settings == Path("p/.predictor.json")
     assert pred.hosted_state("00001") == Path("p/.hosted/00001.json")
     assert pred.scratch_dir == Path("p/.scratch")
     assert pred.state("00001") == Path("p/00001.state.npz") == state_path("p/00001.webm")

@@ -11,6 +11,7 @@ import pytest
 
 from fixtures import published_set as ps  # noqa: E402
 
+from rigidbench.driver import RunOptions  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
 from rigidbench.report import build_report  # noqa: E402
@@ -24,12 +25,12 @@ from rigidbench.stages.predict import predict  # noqa: E402
 def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("readout-report")
     ps.write_set(root / "src", n_frames=25)
-    assert import_published(root / "src", root / "data", progress=False).ok
+    assert import_published(root / "src", root / "data", run=RunOptions(progress=False)).exit_status() == 0
     out = []
     for mode in ("reference", "static"):
         preds = root / "predictions" / mode
-        predict(mode, root / "data" / "eval", preds, PredictContext(severity=1.0), progress=False)
-        summary = evaluate(preds, root / "data", root / "runs" / mode, nets=FeatureNets(), progress=False)
+        predict(mode, root / "data" / "eval", preds, PredictContext(severity=1.0), run=RunOptions(progress=False))
+        summary = evaluate(preds, root / "data", root / "runs" / mode, nets=FeatureNets(), run=RunOptions(progress=False))
         assert not summary.failed, summary.failed
         out.append(summary.out_dir)
     return root, out

@@ -12,15 +12,16 @@ lazily, inside the run functions.
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from ..argtypes import IdList, positive_int, selected_ids, split_ids, writable
 from ..context import RunContext
-from ..driver import Selection, wait_for_others
+from ..driver import RunOptions, Selection, StageReport
 from ..errors import UserError
-from ..executors import Shard, make_executor
+from ..executors import Executor, RayExecutor, make_executor
 from ..registry import load_target
 
 DEFAULT_DATA = Path("data")
@@ -60,14 +61,9 @@ class Command:
 
 
 def lazy(target: str):
-    """A run function ``f(args, ctx)`` imported only when its command runs; ``--wait`` (selection options) is
-    handed to the stage driver here, for every stage the command runs (and taken back after it)."""
+    """A run function ``f(args, ctx)`` imported only when its command runs."""
     def run(args, ctx: RunContext):
-        wait_for_others(getattr(args, "wait", False))
-        try:
-            return load_target(target, "command")(args, ctx)
-        finally:
-            wait_for_others(False)
+        return load_target(target, "command")(args, ctx)
 
     return run
 
@@ -153,14 +149,33 @@ GROUPS: dict[str, Arguments] = {"selection": selection_options, "manifest": mani
 # -- reading the groups back -----------------------------------------------------------------------------
 
 
-def selection_from(args) -> Selection:
-    """The driver's Selection of --ids, --limit and --shard."""
-    return Selection.of(selected_ids(args), getattr(args, "limit", None), getattr(args, "shard", None))
+def run_options(args, *, local: Executor | None = None, actors: int | None = None,
+                limit: int | None = None) -> RunOptions:
+    """How a command runs its stage, built once from its arguments: the ``Selection`` of --ids, --limit (or
+    ``limit``, a command's own count such as ``--clips``) and --shard; one executor of --executor and
+    --ray-address (``local``: the command's own executor when it runs here, e.g. render's child processes;
+    ``actors``: Ray actors to start, default as many as fit); --no-progress; --wait."""
+    selection = Selection.of(selected_ids(args), limit if limit is not None else getattr(args, "limit", None),
+                             getattr(args, "shard", None))
+    if getattr(args, "executor", "local") == "ray":
+        executor: Executor | None = RayExecutor(address=getattr(args, "ray_address", None), workers=actors)
+    elif local is not None:
+        executor = local
+    else:
+        executor = make_executor("local")
+    return RunOptions(selection, executor, progress=not getattr(args, "no_progress", False),
+                      wait=bool(getattr(args, "wait", False)))
 
 
-def executor_from(args):
-    """(Executor, Shard) from --executor, --ray-address and --shard."""
-    return make_executor(args.executor, ray_address=args.ray_address), Shard.parse(args.shard)
+def report_stage(report: StageReport) -> int:
+    """Print what a stage run did, the same words for every stage (``StageReport.lines``); returns the
+    command's exit status (1 when any example failed or did not start)."""
+    out, err = report.lines()
+    for line in out:
+        print(line)
+    for line in err:
+        print(line, file=sys.stderr)
+    return report.exit_status()
 
 
 def split_dir(args) -> Path:
@@ -186,5 +201,5 @@ def output_dir(path: Path, option: str = "--out", *, dry_run: bool = False) -> P
     return path
 
 
-__all__ = ["Command", "DEFAULT_DATA", "GROUPS", "executor_from", "lazy", "output_dir", "selected_ids",
-           "selection_from", "split_dir", "split_ids"]
+__all__ = ["Command", "DEFAULT_DATA", "GROUPS", "lazy", "output_dir", "report_stage", "run_options", "selected_ids",
+           "split_dir", "split_ids"]

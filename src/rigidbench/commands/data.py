@@ -12,7 +12,7 @@ from pathlib import Path
 from ..argtypes import IdList, output_file, output_folder, positive_int, split_ids, writable
 from ..context import RunContext
 from ..errors import UserError
-from . import DEFAULT_DATA, Command, output_dir, selected_ids, split_dir
+from . import DEFAULT_DATA, Command, output_dir, report_stage, run_options, split_dir
 
 
 def _published_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,21 +37,18 @@ def _import_arguments(p: argparse.ArgumentParser) -> None:
                                      "bundles record it (default: the newest described)")
 
 
-def _finish(summary, data: Path) -> int:
+def _finish(report, data: Path) -> int:
     """Print what the import did, write DATA/inputs.jsonl; exit status 1 when a sample failed."""
     from ..benchmark import write_inputs
 
-    print(f"imported {len(summary.imported)} samples, {len(summary.unchanged)} unchanged, {len(summary.failed)} failed "
-          f"-> {summary.split_dir}")
-    for sample_id, reason in summary.failed.items():
-        print(f"  FAILED {sample_id}: {reason}")
-    if summary.imported or summary.unchanged:
+    status = report_stage(report)
+    if report.succeeded:
         inputs = write_inputs(data)
         print(f"model inputs: {inputs}")
         print(f"next: generate one video per line of {inputs} into predictions/MODEL/<id>.mp4, then "
               f"`rigidbench validate predictions/MODEL --data {data}` and "
               f"`rigidbench evaluate predictions/MODEL --data {data} --perception neural`")
-    return 1 if summary.failed else 0
+    return status
 
 
 def _say_deletable(folder: Path, extra: str = "") -> None:
@@ -105,13 +102,14 @@ def cmd_download(args, ctx) -> int:
                 return 0
         extracted = download_dataset(desc, data, keep_archive=args.keep_archive, verify=not args.no_verify)
         verified = bool((read_marker(desc, data) or {}).get("md5_verified"))
-        summary = import_published(extracted, data, dataset=dataset_identity(desc, verified,
-                                                                             BY_DOWNLOAD if verified else NO_VERIFY),
-                                   registry=ctx.registry, config_dirs=ctx.config_dirs, replace=args.replace)
-        status = _finish(summary, data)
-        if summary.ok:
+        report = import_published(extracted, data, dataset=dataset_identity(desc, verified,
+                                                                            BY_DOWNLOAD if verified else NO_VERIFY),
+                                  registry=ctx.registry, run=run_options(args), config_dirs=ctx.config_dirs,
+                                  replace=args.replace)
+        status = _finish(report, data)
+        if status == 0:
             write_json(download_dir(desc, data) / IMPORTED, {
-                "id": desc.id, "md5": desc.md5, "ids": sorted(summary.imported + summary.unchanged),
+                "id": desc.id, "md5": desc.md5, "ids": sorted(report.succeeded),
                 "imported_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
             _say_deletable(extracted, "; `rigidbench download` will not fetch the archive again for it")
         return status
@@ -136,14 +134,14 @@ def cmd_import(args, ctx) -> int:
             verified, verification = True, BY_IMPORT
         else:
             verified, verification = folder_verification(src, desc, data)
-        summary = import_published(src, data, dataset=dataset_identity(desc, verified, verification),
-                                   registry=ctx.registry, config_dirs=ctx.config_dirs, ids=selected_ids(args),
-                                   limit=args.limit, replace=args.replace)
-        status = _finish(summary, data)
+        report = import_published(src, data, dataset=dataset_identity(desc, verified, verification),
+                                  registry=ctx.registry, run=run_options(args), config_dirs=ctx.config_dirs,
+                                  replace=args.replace)
+        status = _finish(report, data)
         if not verified:
             print(f"note: the set's MD5 was not checked ({verification}); results on it are not official: import "
                   "its .tar.gz or parts, or download it, to check it")
-        if summary.ok and parts is not None:
+        if status == 0 and parts is not None:
             _say_deletable(src)
         return status
 
@@ -167,27 +165,14 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=output_folder, help="output directory (default data/<split>)")
 
 
-def manifest_rows(args, ctx: RunContext):
-    """The manifest rows of --split selected by --ids and --limit (an unknown id is a UserError)."""
-    from .. import manifest
-
-    try:
-        return manifest.select(manifest.rows(args.split, ctx.registry), selected_ids(args), args.limit)
-    except KeyError as exc:
-        raise UserError(exc.args[0]) from None
-
-
 def cmd_simulate(args, ctx: RunContext) -> int:
+    from .. import manifest
     from ..stages.simulate import simulate_rows
 
     out = output_dir(args.out or DEFAULT_DATA / args.split)
-    rows = manifest_rows(args, ctx)
-    failures, skipped = simulate_rows(rows, ctx.registry, Path(out), config_dirs=ctx.config_dirs)
-    print(f"simulated {len(rows) - len(failures) - len(skipped)} of {len(rows)} examples into {out} "
-          f"({len(skipped)} already done)")
-    for sample_id, reason in failures:
-        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
-    return 1 if failures else 0
+    report = simulate_rows(manifest.rows(args.split, ctx.registry), ctx.registry, Path(out), run_options(args),
+                           config_dirs=ctx.config_dirs)
+    return report_stage(report)
 
 
 def _render_arguments(p: argparse.ArgumentParser) -> None:
@@ -210,55 +195,27 @@ def _show_arguments(p: argparse.ArgumentParser) -> None:
                                             "<split>_<id>_contact_sheet.png here)")
 
 
-def _settings_changed(why: str) -> bool:
-    from ..stages.render import SETTINGS_CHANGED
-
-    return why == SETTINGS_CHANGED or why.startswith("the bundle was rendered at")
-
-
 def cmd_render(args: argparse.Namespace, ctx: RunContext) -> int:
     from .. import manifest
-    from ..blender.session import bpy_available
-    from ..driver import Selection
-    from ..executors import RayExecutor
-    from ..extras import missing
+    from ..executors import ProcessExecutor
     from ..groundtruth import bundle as B
     from ..stages.render import RenderStage, render_stage, render_threads
 
     reg = ctx.registry
-    candidates = manifest.rows(args.split, reg)
-    selection = Selection.of(selected_ids(args), args.limit, getattr(args, "shard", None))
-    selection.apply([r.sample_id for r in candidates], f"the {args.split} manifest")  # unknown ids: fail first
     if args.quality not in reg.presets:
         raise UserError(f"unknown quality '{args.quality}'; presets: {', '.join(reg.presets)}")
     data = Path(args.data)
     writable(data, "--data")
-    if not bpy_available():
-        raise missing("bpy", "rendering (Blender as a Python module, bpy 4.5 on Python 3.11)")
     if B.bundle_dirs(data):
         raise UserError(f"{data} holds bundles itself: it is a split directory, and render writes into "
                         f"DATA/<split>/; did you mean --data {data.parent}?")
     threads = render_threads(args.workers)
-    stage = RenderStage(data, args.split, candidates, reg, args.quality, args.device, threads, ctx.config_dirs)
-    executor = None
-    if getattr(args, "executor", "local") == "ray":
-        executor = RayExecutor(address=args.ray_address, workers=args.workers if args.workers > 1 else None)
-    report = render_stage(stage, selection, executor, workers=args.workers, quiet=not getattr(args, "verbose", False),
-                          progress=not getattr(args, "no_progress", False))
-    print(f"rendered {len(report.ran)}, skipped {len(report.reused)} complete, failed {len(report.failed)} of "
-          f"{len(report.selected)} {args.split} examples ({args.quality}) into {stage.root}")
-    changed = [i for i in report.ran if _settings_changed(report.redone.get(i, ""))]
-    if changed:
-        shown = ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else "")
-        print(f"  {len(changed)} of them had been rendered with other settings (preset or configuration) and were "
-              f"rendered again: {shown}")
-    for sample_id, reason in report.failed.items():
-        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
-    if report.interrupted:
-        print(f"  {len(report.interrupted)} examples were not started", file=sys.stderr)
-    if report.failed:
-        print("rerun the same command to retry the failed examples; complete bundles are kept", file=sys.stderr)
-    return 1 if report.failed or report.interrupted else 0
+    stage = RenderStage(data, args.split, manifest.rows(args.split, reg), reg, args.quality, args.device, threads,
+                        ctx.config_dirs)
+    local = ProcessExecutor(workers=args.workers, quiet=not getattr(args, "verbose", False),
+                            label=lambda task: task["id"])
+    run = run_options(args, local=local, actors=args.workers if args.workers > 1 else None)
+    return report_stage(render_stage(stage, run))
 
 
 def cmd_show(args: argparse.Namespace, ctx: RunContext) -> int:

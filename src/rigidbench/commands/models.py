@@ -9,7 +9,7 @@ from pathlib import Path
 from ..argtypes import IdList, positive_int
 from ..context import RunContext
 from ..errors import RigidBenchError, UserError
-from . import Command, executor_from, output_dir, selected_ids, split_dir, split_ids
+from . import Command, output_dir, run_options, split_dir, split_ids
 
 
 def format_predictors() -> str:
@@ -66,9 +66,8 @@ def cmd_predict(args, ctx: RunContext) -> int:
     info = predictor_info(args.name)
     ctx.registry  # a bad configuration file: one error now, not one failure per example
     out = output_dir(args.out or Path("predictions") / info.name, dry_run=args.dry_run)
-    executor, shard = executor_from(args)
-    summary = predict(args.name, split_dir(args), out, predict_context(args, ctx, [args.name]), selected_ids(args),
-                      args.limit, dry_run=args.dry_run, executor=executor, shard=shard)
+    summary = predict(args.name, split_dir(args), out, predict_context(args, ctx, [args.name]), run_options(args),
+                      dry_run=args.dry_run)
     if args.dry_run:
         print(f"{info.name}: would generate {len(summary.planned)} videos ({len(summary.skipped)} already there), "
               f"{summary.paid_calls} paid API calls; nothing was sent")
@@ -100,7 +99,7 @@ def cmd_audit(args, ctx: RunContext) -> int:
     ctx.registry  # a bad configuration file: one error now, not one failure per example and model
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
     summary = audit(models, split_dir(args), args.out, predict_context(args, ctx, models), yes=args.yes,
-                    perception=args.perception, perception_options=options, ids=selected_ids(args), limit=args.limit,
+                    perception=args.perception, perception_options=options, run=run_options(args),
                     resamples=args.resamples)
     if summary.stopped_for_confirmation:
         return 2

@@ -7,14 +7,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..argtypes import existing_folder, non_negative_int, output_folder, positive_int, selected_ids
+from ..argtypes import existing_folder, non_negative_int, output_folder, positive_int
 from ..context import RunContext
 from ..errors import UserError
 from ..perception.device import resolve_device
 from ..probe.recipe import CHOICES, INLP_PROCEDURES, RECIPE_NAMES
 from ..registry import load_target
 from ..train.config import MODEL_SPECS
-from . import Command
+from . import Command, run_options
 
 PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
 INTERVENTION_TAUS = "0.3,0.5,0.7"
@@ -147,8 +147,8 @@ def cmd_extract(args, ctx: RunContext) -> int:
     summary = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
                           model_path=None if args.model_path is None else str(args.model_path),
                           taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
-                          limit=args.limit, progress=not args.no_progress, backbone_seed=args.random_seed,
-                          ids=selected_ids(args), recipe=args.recipe, overrides=conditioning_overrides(args))
+                          run=run_options(args), backbone_seed=args.random_seed, recipe=args.recipe,
+                          overrides=conditioning_overrides(args))
     print(f"probe extract ({args.backbone}): {len(summary.extracted)} clips, {summary.rows} actor-slot rows into "
           f"{summary.out} ({len(summary.skipped)} already there, {len(summary.failed)} failed) in "
           f"{summary.seconds:.1f} s")
@@ -184,9 +184,9 @@ def cmd_intervene(args, ctx: RunContext) -> int:
     run = load_target("rigidbench.stages.probe_intervene:run_intervene", "command")
     if args.clips < 1:
         raise UserError(f"--clips must be at least 1, got {args.clips}")
-    result = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"), clips=args.clips,
-                 blocks=parse_ints(args.blocks, "--blocks"), n_resamples=args.resamples,
-                 device=args.net_device or ctx.device, progress=not args.no_progress, full_readout=args.full_readout,
+    result = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"),
+                 run=run_options(args, limit=args.clips), blocks=parse_ints(args.blocks, "--blocks"),
+                 n_resamples=args.resamples, device=args.net_device or ctx.device, full_readout=args.full_readout,
                  inlp_dtype=args.inlp_dtype, clip_split=args.clip_split, recipe=args.recipe,
                  overrides=conditioning_overrides(args), inlp_procedure=args.inlp_procedure)
     print(f"probe intervene: {len(result['clips'])} clips ({result['clips_this_run']} run now), "

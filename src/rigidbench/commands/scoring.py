@@ -10,7 +10,7 @@ from pathlib import Path
 from ..argtypes import IdList, input_folder, int_at_least, non_negative_int, positive_int, writable
 from ..context import RunContext
 from ..errors import UserError
-from . import Command, executor_from, output_dir, selected_ids, split_dir, split_ids
+from . import Command, output_dir, report_stage, run_options, split_dir, split_ids
 
 
 def _validate_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,29 +54,22 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
     input_folder(args.predictions, "predictions", "the folder of <id>.mp4 files")
     out = output_dir(args.out or Path("runs") / args.predictions.name)
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
-    executor, shard = executor_from(args)
-    summary = evaluate(args.predictions, split_dir(args), out, perception=args.perception, ids=selected_ids(args),
-                       limit=args.limit, model=args.model, perception_options=options, executor=executor, shard=shard,
-                       device=ctx.device, protocol=args.protocol, first_frame_check=not args.no_first_frame_check,
+    summary = evaluate(args.predictions, split_dir(args), out, perception=args.perception, run=run_options(args),
+                       model=args.model, perception_options=options, device=ctx.device, protocol=args.protocol,
+                       first_frame_check=not args.no_first_frame_check,
                        allow_short=args.allow_short)
-    overall = summary.results["overall"]
+    status = report_stage(summary.stage)  # the words every stage uses; then evaluate's own lines
     dataset = summary.results.get("dataset", {})
     print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
-          f"{summary.results['protocol']['name']}")
-    print(f"{summary.results['model']}: {len(summary.evaluated)} evaluated, {len(summary.reused)} unchanged "
-          f"(reused), {len(summary.failed)} failed"
-          + (f", {len(summary.elsewhere)} being evaluated by another process" if summary.elsewhere else "")
-          + f" -> {out}")
-    for name, stats in overall.items():
+          f"{summary.results['protocol']['name']}; model {summary.results['model']}")
+    for name, stats in summary.results["overall"].items():
         mean = "n/a" if stats["mean"] is None else f"{stats['mean']:.4f}"
         print(f"  {name:12s} {mean:>10s}  (finite {stats['finite']}/{stats['n']})")
     for metric, reason in summary.skipped_metrics.items():
         print(f"  skipped {metric}: {reason}")
-    for sample_id, reason in summary.failed.items():
-        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
     print("official result" if summary.official else
           "not an official result: " + "; ".join(summary.results.get("why_not_official", [])))
-    return 1 if summary.failed else 0
+    return status
 
 
 def _report_arguments(p: argparse.ArgumentParser) -> None:

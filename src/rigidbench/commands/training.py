@@ -8,13 +8,12 @@ import os
 import sys
 from pathlib import Path
 
-from ..argtypes import existing_folder, output_folder, positive_int, selected_ids
+from ..argtypes import existing_folder, output_folder, positive_int
 from ..context import RunContext
 from ..errors import UserError
-from ..executors import Shard, make_executor
 from ..registry import load_target
 from ..train.config import MODEL_SPECS, NAMED_CONFIGS, RESIZES, VAE_DTYPES, load_train_config
-from . import Command
+from . import Command, run_options
 
 
 def _preprocess_arguments(p) -> None:
@@ -56,13 +55,10 @@ def cmd_preprocess(args, ctx: RunContext) -> int:
         raise UserError(f"--limit must be at least 0, got {args.limit}")
     model_path = None if args.model_path is None else str(args.model_path)
     device = args.net_device or ctx.device
-    executor = None
-    if args.executor == "ray":  # a Ray actor per GPU (per CPU with --device cpu), each encoding clips
-        executor = make_executor("ray", ray_address=args.ray_address, workers=args.ray_shards)
-    summary = run_preprocess(args.data, args.out, model=args.model, split=args.split, limit=args.limit,
-                             model_path=model_path, device=device, progress=not args.no_progress,
-                             shard=Shard.parse(args.shard), resize=args.resize, vae_dtype=args.vae_dtype,
-                             ids=selected_ids(args), executor=executor)
+    # --executor ray: a Ray actor per GPU (per CPU with --device cpu), each encoding clips
+    summary = run_preprocess(args.data, args.out, model=args.model, split=args.split,
+                             run=run_options(args, actors=args.ray_shards), model_path=model_path, device=device,
+                             resize=args.resize, vae_dtype=args.vae_dtype)
     where = " on Ray" if args.executor == "ray" else ""
     print(f"preprocess ({args.model}, {summary.device}){where}: {len(summary.encoded)} clips and "
           f"{summary.prompts_encoded} prompts encoded into {summary.cache} ({len(summary.skipped)} clips already "

@@ -50,6 +50,7 @@ from ..groundtruth.layout import is_published_metadata
 from ..groundtruth.tracks import DEPTH_TOLERANCE, POINTS_PER_ACTOR, TRACK_RULES, ground_truth_tracks
 from ..groundtruth.trajectory import Trajectory
 from ..hashing import file_digest
+from ..jsonio import write_json
 from ..rotations import quat_to_matrix
 from ..video import VideoError, probe_video, read_video, write_video
 
@@ -346,7 +347,7 @@ def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=
     contacts_path = src / "contacts.json"
     contacts = _contacts(_read_json(contacts_path), names, T, contacts_path) if contacts_path.is_file() else \
         {"frames": T, "tolerance_m": None, "contacts": [], "method": "not in the published sample"}
-    B.write_json(dst / B.CONTACTS_FILE, contacts)
+    write_json(dst / B.CONTACTS_FILE, contacts, allow_nan=False)
     tracks.save(dst / B.TRACKS_FILE)
     (dst / B.PROMPT_FILE).write_text(prompt + "\n")
     actor_rows = [{"name": n, "asset": (actors.get(n) or {}).get("object_id"), "role": r, "pass_index": k + 1,
@@ -372,7 +373,7 @@ def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=
         "source": {**(dataset or {}), "sample_digest": digest or source_digest(src), "original_metadata": meta,
                    "manifest_row": row or None},
     }
-    B.write_json(dst / B.METADATA_FILE, out)
+    write_json(dst / B.METADATA_FILE, out, allow_nan=False)
     return out
 
 

@@ -8,7 +8,6 @@ from pathlib import Path
 
 from ..folders import DEPTH_FILE, MASKS_FILE, METADATA_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE
 from ..hashing import file_digest as file_hash
-from ..jsonio import write_json as _write
 
 # 2: ATE-3D against the simulated actor positions (the paper's target); 3: records hold the clip's coverage
 # of the reference span, and the reference key leaves out metadata that does not move scores
@@ -61,8 +60,3 @@ def input_key(prediction_key: str, reference_key: str, backend: str, nets_key: s
 
 def digest(mapping: dict[str, str]) -> str:
     return hashlib.sha256(json.dumps(mapping, sort_keys=True).encode()).hexdigest()
-
-
-def write_json(path: Path, doc: dict) -> None:
-    """An evaluation output, atomically; NaN is refused (non-finite scores are written as null)."""
-    _write(path, doc, indent=2, allow_nan=False)

@@ -11,10 +11,11 @@ Layout under ``out``: ``predictions/<model>/``, ``runs/<model>/``, ``report/``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
+from ..driver import RunOptions
 from ..errors import UserError
 from ..perception.features import FeatureNets, load_feature_nets
 from ..predictors import PredictContext, predictor_info
@@ -37,9 +38,9 @@ class AuditSummary:
 
 
 def audit(models: Sequence[str], split_dir: Path, out: Path, ctx: PredictContext, *, yes: bool = False,
-          perception: str = "gt", perception_options: dict | None = None, ids: list[str] | None = None,
-          limit: int | None = None, nets: FeatureNets | None = None, report: bool = True,
-          resamples: int = 20000, progress: bool = True) -> AuditSummary:
+          perception: str = "gt", perception_options: dict | None = None,
+          run: RunOptions = RunOptions(), nets: FeatureNets | None = None, report: bool = True,
+          resamples: int = 20000) -> AuditSummary:
     """Predict, validate and evaluate every model in ``models`` on ``split_dir``, then report them together."""
     if not models:
         raise UserError("name at least one model, e.g. --models wan-2.2,veo-3.1 (rigidbench predict --list)")
@@ -48,7 +49,7 @@ def audit(models: Sequence[str], split_dir: Path, out: Path, ctx: PredictContext
     summary = AuditSummary()
     for name, info in zip(models, infos):
         preds = out / "predictions" / info.name
-        planned = predict(name, split_dir, preds, ctx, ids, limit, progress=False, dry_run=True)
+        planned = predict(name, split_dir, preds, ctx, replace(run, progress=False), dry_run=True)
         if planned.paid_calls:
             summary.paid_calls[info.name] = planned.paid_calls
     if summary.paid_calls:
@@ -62,16 +63,16 @@ def audit(models: Sequence[str], split_dir: Path, out: Path, ctx: PredictContext
     for name, info in zip(models, infos):
         preds = out / "predictions" / info.name
         print(f"[{info.name}] predict into {preds}", flush=True)
-        run = predict(name, split_dir, preds, ctx, ids, limit, progress=progress)
-        if run.failed:
-            summary.failed[info.name] = dict(run.failed)
+        made = predict(name, split_dir, preds, ctx, run)
+        if made.failed:
+            summary.failed[info.name] = dict(made.failed)
         checked = validate_predictions(preds, split_dir)
         if not checked.ok:
             summary.blocked[info.name] = len(checked.errors)
             print(format_report(checked), flush=True)
         print(f"[{info.name}] evaluate ({perception} perception)", flush=True)
-        result = evaluate(preds, split_dir, out / "runs" / info.name, perception=perception, ids=ids, limit=limit,
-                          nets=nets, model=info.name, progress=progress, perception_options=perception_options)
+        result = evaluate(preds, split_dir, out / "runs" / info.name, perception=perception, run=run,
+                          nets=nets, model=info.name, perception_options=perception_options)
         for sample_id, reason in result.failed.items():
             summary.failed.setdefault(info.name, {}).setdefault(sample_id, reason)
         summary.runs.append(result.out_dir)

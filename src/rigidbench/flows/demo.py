@@ -70,9 +70,10 @@ def run_demo(out_dir: Path, quality: str = "demo", severity: float = 0.5, percep
     stages = 4 if report else 3
     _stage(1, stages, f"rendering {len(rows)} evaluation examples (one per task) at the '{quality}' preset "
                       f"into {data}", started)
-    _, render_failures = render_rows(rows, reg, data, quality=quality, config_dirs=ctx.config_dirs)
-    for failure in render_failures:
-        print(f"  render FAILED {failure.sample_id}: {failure.reason}", flush=True)
+    render_failures = {i: why for report in render_rows(rows, reg, data, quality=quality, config_dirs=ctx.config_dirs)
+                       for i, why in report.failed.items()}
+    for sample_id, reason in render_failures.items():
+        print(f"  render FAILED {sample_id}: {reason}", flush=True)
     if len(render_failures) == len(rows):
         print("every example failed to render; nothing to evaluate", flush=True)
         return 1

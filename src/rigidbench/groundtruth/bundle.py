@@ -84,10 +84,6 @@ def write_depth(path: Path, depth_m: np.ndarray) -> None:
     np.savez_compressed(path, depth=np.asarray(depth_m, dtype=np.float32))
 
 
-def write_json(path: Path, data: Any) -> None:
-    jsonio.write_json(path, data, allow_nan=False)
-
-
 def slice_trajectory(trajectory: Trajectory, frames: int) -> Trajectory:
     """The first ``frames`` frames of a trajectory (velocities kept from the full clip)."""
     return Trajectory(names=trajectory.names, roles=trajectory.roles, fps=trajectory.fps,
@@ -844,7 +840,7 @@ def check_bundle(path: str | Path, check_video: bool = True, deep: bool = True) 
 
 __all__ = ["BUNDLE_VERSION", "BUNDLE_FILES", "FRAMES_DIR", "VIDEO_FILE", "MASKS_FILE", "DEPTH_FILE",
            "TRAJECTORIES_FILE", "CONTACTS_FILE", "TRACKS_FILE", "METADATA_FILE", "PROMPT_FILE", "SPEC_FILE",
-           "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth", "write_json",
+           "BundleError", "frame_name", "masks_from_index", "write_masks", "write_depth",
            "slice_trajectory", "camera_metadata", "make_metadata", "Sample",
            "check_bundle", "no_spec_message", "dataset_identity", "set_identity", "unverified_reason", "refuse_imported", "READ_ERRORS",
            "read_bundle_file", "damaged_error", "repair_hint", "is_imported"]

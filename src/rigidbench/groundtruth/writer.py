@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import RenderPreset
+from ..jsonio import write_json
 from ..rotations import quat_to_matrix
 from ..video import write_video
 from . import bundle as B
@@ -87,7 +88,7 @@ def write_bundle(tmp: Path, result: Any, preset: RenderPreset, total_s: float) -
                            fps=float(spec.sim.fps), render=render_facts, software=software, seconds=seconds,
                            tracks=track_facts)
     meta["image_sides"] = image_sides(names, traj.positions_m[:, 0], K, R_c, t_c)
-    B.write_json(tmp / B.METADATA_FILE, meta)
+    write_json(tmp / B.METADATA_FILE, meta, allow_nan=False)
 
 
 __all__ = ["image_sides", "write_bundle"]

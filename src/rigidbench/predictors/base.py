@@ -204,6 +204,18 @@ class Predictor(ABC):
     def concurrency(self, ctx: PredictContext) -> int:
         return 1
 
+    def preflight(self, ctx: PredictContext) -> None:
+        """Checked once before any example runs, and only when one will (e.g. a hosted model's token): raise a
+        UserError saying what to fix. Nothing by default."""
+
+    def recover_record(self, out_dir: Path, sample_id: str) -> dict | None:
+        """What this predictor's own files in ``out_dir`` say about ``sample_id``'s finished prediction (e.g. a
+        hosted prediction's id), for a video whose record was lost; None (the default) when nothing."""
+        return None
+
+    def request_stop(self) -> None:
+        """The run is stopping (SIGTERM, Ctrl-C): start nothing new. Nothing by default."""
+
     def close(self) -> None:
         """Release models or connections (called once after the last example)."""
 

@@ -18,7 +18,7 @@ None means "not given"):
   and benchmarks inject tiny or randomly initialised pipelines this way; it is used at its own
   dtype, and changed in place by what the run asks for: a checkpoint, the guardrail, offload).
 
-A run's settings (what ``.predictor.json`` compares to decide whether finished videos are reused)
+A run's settings (part of each example's key: a change makes its finished video stale)
 are the seed, where the pipeline comes from, every generation parameter, tiled VAE decoding and the
 model's own (checkpoint fingerprint, guardrail); offload and the device are recorded in
 generation.json but do not make finished videos stale. The hub commit of a downloaded model is recorded per example (``model_commit``).

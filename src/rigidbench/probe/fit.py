@@ -24,7 +24,8 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from .store import ActivationStore, atomic_json
+from ..jsonio import write_json
+from .store import ActivationStore
 
 PROBES = ("linear", "mlp")
 LABELS = ("trained", "shuffled")
@@ -208,12 +209,12 @@ def run_fit(acts, out, *, targets=None, probes=PROBES, blocks=None, taus=None,
     path = out / "scores.jsonl"
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
     done = {cell_key(r) for r in records}
-    atomic_json(out / "fit.json", {"acts": str(Path(acts).resolve()), "backbone": backbone,
+    write_json(out / "fit.json", {"acts": str(Path(acts).resolve()), "backbone": backbone,
                                    "settings": settings.__dict__, "targets": targets, "probes": list(probes),
                                    "rows": {s: int(m.sum()) for s, m in masks.items()},
                                    "clips": {s: int(len(set(rows["clip"][m]))) for s, m in masks.items()},
                                    "token_grid": store.manifest["token_grid"],
-                                   "schedule": store.manifest["schedule"]})
+                                   "schedule": store.manifest["schedule"]}, sort_keys=True)
     todo = [(b, tau) for b in blocks for tau in taus]
     bar = tqdm(total=len(todo) * len(targets) * len(probes) * 2, unit="cell", desc=f"fit {backbone}",
                disable=not progress)

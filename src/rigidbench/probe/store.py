@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..jsonio import write_json
 from .recipe import Conditioning
 
 MANIFEST = "manifest.json"
@@ -34,10 +33,6 @@ STORE_VERSION = 3  # 3: one file pair per clip (driver); 2: tau as the release m
 READABLE_VERSIONS = (2, 3)
 SPLITS = ("train", "val", "test")
 PAPER_SPLIT = (4000, 500, 500)
-
-
-def atomic_json(path: Path, data) -> None:
-    write_json(path, data, sort_keys=True)
 
 
 def assign_splits(ids: list[str], seed: int = 0) -> dict[str, str]:

@@ -18,19 +18,19 @@ from typing import Any
 
 import numpy as np
 
-from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, ledger_outcomes, run_stage
+from ..driver import ItemResult, Progress, RunOptions, Stage, StageReport, StageWorker, ledger_outcomes, run_stage
 from ..errors import EXAMPLE_ERRORS, EvaluationError
 from ..evaluation.aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
-from ..evaluation.keys import file_hash, input_key, reference_hash, write_json
+from ..evaluation.keys import file_hash, input_key, reference_hash
 from ..evaluation.protocol import Protocol, get_protocol
 from ..evaluation.provenance import run_info
 from ..evaluation.scoring import metric_inputs, score_inputs
-from ..executors import Executor, LocalExecutor, Resources, Shard
+from ..executors import Resources, Shard
 from ..firstframe import compare_first_frames, mismatch_message
 from ..folders import RunFolder, find_prediction, state_path
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity, unverified_reason
 from ..hashing import digest
-from ..jsonio import read_json
+from ..jsonio import read_json, write_json
 from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
 from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
@@ -86,10 +86,11 @@ def refusal(facts: dict, pred: Path, ref_dir: Path, first_frame_check: bool, all
     return None
 
 
-def ready_backend(perception: str, options: dict | None = None):
-    """The perception backend, after checking it has every network weight it needs (EvaluationError
-    listing each missing one, where it was looked for and how to fetch it, before any work starts)."""
-    backend = get_backend(perception, **(options or {}))
+def ready_backend(perception: str, options: dict | None = None, backend=None):
+    """The perception backend (``backend``, or a new one), after checking it has every network weight it needs
+    (EvaluationError listing each missing one, where it was looked for and how to fetch it, before any work
+    starts)."""
+    backend = backend if backend is not None else get_backend(perception, **(options or {}))
     missing = backend.missing_weights() if hasattr(backend, "missing_weights") else []
     if missing:
         raise EvaluationError(f"{backend.name} perception cannot run: " + "\n  ".join(missing)
@@ -102,9 +103,8 @@ def _finite_or_none(x: float | None) -> float | None:
 
 
 def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, perception: str = "gt",
-             ids: list[str] | None = None, limit: int | None = None, nets: FeatureNets | None = None,
-             model: str | None = None, progress: bool = True, perception_options: dict | None = None,
-             executor: Executor | None = None, shard: Shard = Shard(), device: str | None = None,
+             run: RunOptions = RunOptions(), nets: FeatureNets | None = None,
+             model: str | None = None, perception_options: dict | None = None, device: str | None = None,
              protocol: str | None = None, first_frame_check: bool = True,
              allow_short: bool = False) -> EvaluationSummary:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
@@ -115,9 +115,10 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     allow_download, models); a backend with ``use_cache_dir`` caches its model outputs under
     ``out/cache/<backend>/``. A rerun reuses examples whose inputs and rules are unchanged (the stage
     driver's ledger, ``out/.stages/evaluate/``; ``EvaluateStage.key``) and scores the others; a killed run
-    resumes. ``executor`` runs the examples (default: in this process); ``shard`` scores only its part of
-    the selection (its results.json covers that part; a final run without ``shard`` reuses every example
-    and aggregates). ``protocol`` names the evaluation protocol (``evaluation.protocol``; default
+    resumes. ``run`` selects the examples and runs them (default: all, in this process); a selection with a
+    shard scores only its part (its results.json covers that part; a final run without one reuses every
+    example and aggregates). The weights are checked, and the feature networks loaded, only when an
+    example is to be scored. ``protocol`` names the evaluation protocol (``evaluation.protocol``; default
     ``rigidbench-v1``, the published evaluator's rules). ``first_frame_check`` (default on) fails an
     example whose prediction does not start from its reference's first frame (generated from another set's
     inputs); turning it off is recorded in results.json. A clip that does not cover the reference span
@@ -130,18 +131,13 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
     data_dir = resolve_split_dir(data_dir)
-    selection = Selection.of(ids, limit, shard)
-    selection.apply([p.name for p in bundle_dirs(data_dir)], str(data_dir))  # an unknown id: before any loading
-    executor = executor or LocalExecutor()
     rules = get_protocol(protocol)
-    backend = ready_backend(perception, perception_options)
-    if isinstance(executor, LocalExecutor) and nets is None:
-        nets = load_feature_nets(device)
+    backend = get_backend(perception, **(perception_options or {}))
     stage = EvaluateStage(pred_dir, data_dir, out_dir, model=model or pred_dir.name, backend=backend, nets=nets,
                           rules=rules, perception=perception, perception_options=perception_options or {},
                           device=device, first_frame_check=first_frame_check, allow_short=allow_short,
-                          shard=selection.shard)
-    report = run_stage(stage, selection, executor, progress)
+                          shard=run.selection.shard)
+    report = run_stage(stage, run)
     return stage.summary(report)
 
 
@@ -243,11 +239,15 @@ class EvaluateStage(Stage):
                 "perception_options": self.perception_options, "device": self.device, "protocol": self.rules.name,
                 "first_frame_check": self.first_frame_check, "allow_short": self.allow_short}
 
-    def worker_instance(self) -> "EvaluateWorker | None":
-        """In this process: a worker around the backend and feature networks already loaded."""
-        return EvaluateWorker(self.job(), backend=self.backend, nets=self.nets) if self.nets is not None else None
+    def worker_instance(self) -> "EvaluateWorker":
+        """In this process: a worker around this backend and the feature networks (loaded now, once)."""
+        if self.nets is None:
+            self.nets = load_feature_nets(self.device)
+        return EvaluateWorker(self.job(), backend=self.backend, nets=self.nets)
 
     def prepare(self, todo: list[str]) -> None:
+        """Before any example is scored: every weight the backend needs is there (one error naming each)."""
+        ready_backend(self.perception, backend=self.backend)
         self.folder.cache_dir.mkdir(parents=True, exist_ok=True)
 
     def finish(self, report: StageReport) -> None:
@@ -291,7 +291,7 @@ class EvaluateStage(Stage):
         if not official:
             results["why_not_official"] = why_not_official(self.all_ids, complete_ids, failed, missing_metrics,
                                                            coverage["short"]) + ([unverified] if unverified else [])
-        write_json(self.folder.results, results)
+        write_json(self.folder.results, results, indent=2, allow_nan=False)
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
         for sample_id in report.ran:
             for k, v in report.results[sample_id].get("timings", {}).items():
@@ -300,7 +300,8 @@ class EvaluateStage(Stage):
         info = run_info(self.model, self.pred_dir, self.data_dir, self.backend, feature_nets, self.metrics,
                         self.pred_hashes, self.ref_hashes, timings, time.time() - self.started, sorted(report.ran),
                         list(report.reused), failed)
-        write_json(self.folder.run, {**info, "protocol": self.rules.facts(), "dataset": results["dataset"]})
+        write_json(self.folder.run, {**info, "protocol": self.rules.facts(), "dataset": results["dataset"]},
+                   indent=2, allow_nan=False)
         self.results = results
 
     def summary(self, report: StageReport) -> EvaluationSummary:
@@ -420,6 +421,6 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
     np.savez_compressed(out.arrays(sample_id), **arrays)
-    write_json(out.record(sample_id), record)
+    write_json(out.record(sample_id), record, indent=2, allow_nan=False)  # NaN refused: null is written
     progress(3, steps)
     return record

@@ -14,14 +14,13 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from ..config import registry as load_registry
 from ..datasets.convert import DIGEST_VERSION, convert_sample, find_published_root, published_samples, source_digest
 from ..datasets.datadir import data_lock, format_bytes, prepare_data_dir
-from ..driver import ItemResult, Selection, Stage, StageWorker, ledger_path, run_stage
+from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, ledger_path, run_stage
 from ..errors import EXAMPLE_ERRORS, BundleError, UserError
 from ..groundtruth import bundle as B
 from ..hashing import digest as driver_digest
@@ -31,21 +30,6 @@ log = logging.getLogger(__name__)
 
 #: free space kept beyond what the import writes
 DISK_MARGIN_BYTES = 256 * 1024 * 1024
-
-
-@dataclass
-class ImportSummary:
-    """What ``import_published`` did: bundles written, kept (unchanged) and failed (id -> reason)."""
-
-    root: Path
-    split_dir: Path
-    imported: list[str] = field(default_factory=list)
-    unchanged: list[str] = field(default_factory=list)
-    failed: dict[str, str] = field(default_factory=dict)
-
-    @property
-    def ok(self) -> bool:
-        return not self.failed
 
 
 def _is_current(final: Path, digest: str) -> bool:
@@ -88,10 +72,12 @@ class ImportStage(Stage):
     name = "import"
     worker = "rigidbench.stages.import_set:ImportWorker"
 
-    def __init__(self, root: Path, split_dir: Path, samples, dataset: dict | None, registry, config_dirs=()):
+    def __init__(self, root: Path, split_dir: Path, samples, dataset: dict | None, registry, config_dirs=(),
+                 replace: bool = False):
         self.source_root, self.split_dir = root, split_dir
         self.samples = {sample_id: (folder, row) for sample_id, folder, row in samples}
         self.dataset, self.registry, self.config_dirs = dataset or {}, registry, config_dirs
+        self.identity, self.replace = dataset, replace
         self._digests: dict[str, str] = {}
 
     @property
@@ -101,6 +87,12 @@ class ImportStage(Stage):
     @property
     def where(self) -> str:
         return str(self.source_root)
+
+    def check(self, selected: list[str]) -> None:
+        """One source per folder (``replace`` deletes the others' examples) and room on the disk, before any
+        sample is read."""
+        _keep_one_source(self.split_dir, self.source_root, list(self.samples), selected, self.identity, self.replace)
+        _check_free_disk(self.split_dir, [(self.samples[sample_id][0], sample_id) for sample_id in selected])
 
     def items(self):
         return {sample_id: {"folder": str(folder), "row": row} for sample_id, (folder, row) in self.samples.items()}
@@ -125,17 +117,16 @@ class ImportStage(Stage):
 
 
 def import_published(src: str | Path, data: str | Path, *, dataset: dict | None = None, registry=None,
-                     ids: list[str] | None = None, limit: int | None = None, progress: bool = True,
-                     on_sample: Callable[[str, str], None] | None = None, config_dirs=(),
-                     replace: bool = False) -> ImportSummary:
-    """Convert every published sample under ``src`` into ``data/eval/<id>/`` on the stage driver; ``dataset``
-    is the identity recorded in each bundle's ``source`` (``DatasetDescription.identity()`` with ``verified``
-    and ``verification``). Resumable: a sample whose source files, conversion and identity are unchanged is
-    skipped; per-sample failures are collected in the summary, never raised. ``ids``, ``limit``: which
-    samples (the driver's selection). ``config_dirs``: what a worker elsewhere rebuilds ``registry`` from
-    (this process uses ``registry`` itself). Holds ``data``'s lock (DataBusyError while another download or
-    import holds it); UserError when ``data/eval`` holds examples of another source that this import would
-    leave beside its own (``replace`` deletes them instead), or when the disk cannot hold what it writes."""
+                     run: RunOptions = RunOptions(), on_sample: Callable[[str, str], None] | None = None,
+                     config_dirs=(), replace: bool = False) -> StageReport:
+    """Convert the selected published samples under ``src`` into ``data/eval/<id>/`` on the stage driver;
+    ``dataset`` is the identity recorded in each bundle's ``source`` (``DatasetDescription.identity()`` with
+    ``verified`` and ``verification``). Resumable: a sample whose source files, conversion and identity are
+    unchanged is up to date; per-sample failures are in the report, never raised. ``config_dirs``: what a
+    worker elsewhere rebuilds ``registry`` from (this process uses ``registry`` itself). Holds ``data``'s lock
+    (DataBusyError while another download or import holds it); UserError when ``data/eval`` holds examples of
+    another source that this import would leave beside its own (``replace`` deletes them instead), or when the
+    disk cannot hold what it writes."""
     root = find_published_root(Path(src))
     samples = published_samples(root)
     data = prepare_data_dir(data)
@@ -146,19 +137,13 @@ def import_published(src: str | Path, data: str | Path, *, dataset: dict | None 
             raise UserError(f"--data {data}: the published set itself is there; import into another folder")
         for stale in split_dir.glob(".*.tmp"):  # an interrupted import of an earlier version
             shutil.rmtree(stale, ignore_errors=True)
-        selection = Selection.of(ids, limit)
-        selected = selection.apply([sample_id for sample_id, _, _ in samples], str(root))
-        _keep_one_source(split_dir, root, [sample_id for sample_id, _, _ in samples], selected, dataset, replace)
-        _check_free_disk(split_dir, [(folder, sample_id) for sample_id, folder, _ in samples if sample_id in selected])
-        stage = ImportStage(root, split_dir, samples, dataset, registry, config_dirs)
-        report = run_stage(stage, selection, progress=progress,
-                           on_result=None if on_sample is None else
+        stage = ImportStage(root, split_dir, samples, dataset, registry, config_dirs, replace)
+        report = run_stage(stage, run, on_result=None if on_sample is None else
                            lambda sample_id, entry: on_sample(sample_id, "done" if entry.get("status") == "succeeded"
                                                               else "failed"))
     for sample_id, reason in report.failed.items():
         log.warning("sample %s not imported: %s", sample_id, reason)
-    return ImportSummary(root=root, split_dir=split_dir, imported=list(report.ran), unchanged=list(report.reused),
-                         failed=dict(report.failed))
+    return report
 
 
 def _set_of(identity: dict | None) -> tuple:
@@ -240,4 +225,4 @@ def _check_free_disk(split_dir: Path, samples: list[tuple[Path, str]]) -> None:
                         f"{format_bytes(free)} is free; free space there or choose another --data")
 
 
-__all__ = ["ImportStage", "ImportSummary", "ImportWorker", "import_published", "import_write_bytes"]
+__all__ = ["ImportStage", "ImportWorker", "import_published", "import_write_bytes"]

@@ -1,30 +1,27 @@
 """The predict stage: one video (and, where the predictor knows it, its world state) per reference example.
 
-Outputs in ``OUT/``: ``<id>.mp4`` and ``<id>.state.npz`` for predictors that write the exact world state;
-``generation.json`` with the model, every parameter, package versions and per example its status, seed,
-prompts, timing and whatever the model reports (prediction id, cost); and a hidden ``.predictor.json``
-recording the predictor and the settings of the last run. ``ctx.seed`` is the run's base seed: each example
-is predicted with its own seed, ``predictors.example_seed(base, example id)``, which its record in
-generation.json holds.
+Outputs in ``OUT/``: ``<id>.mp4`` and ``<id>.state.npz`` for predictors that write the exact world state, and
+``generation.json``: the model, every parameter, package versions and per example its status, seed, prompts,
+timing and whatever the model reports (prediction id, cost). ``ctx.seed`` is the run's base seed: each example
+is predicted with its own seed, ``predictors.example_seed(base, example id)``, which its record holds.
 
 The stage runs on the stage driver (``rigidbench.driver``): ``PredictStage`` declares the examples (the
 selected reference bundles) and each one's key, ``PredictWorker`` makes one example's prediction in the
-driver's staging folder, and the driver commits it (``<id>.state.npz``, then ``<id>.<ext>``, then the
-example's record ``.generation/<id>.json``) and writes the example's ledger entry,
-``OUT/.stages/predict/<id>.json``. An example's key (``PredictStage.key``) is a hash of the predictor's
-settings (what ``.predictor.json`` records), the example's own seed (for a seeded predictor) and its model
-inputs (the first frame's file, the prompt with the paper's suffix, the negative prompt). So a rerun skips
-an example whose key is unchanged and whose video (and state) is still there, retries a failed one, and
-makes again exactly those whose settings or inputs changed, saying why. A folder written before ledgers is
-taken over without predicting again when ``.predictor.json`` holds these settings and the video (and state)
-is there. One example's failure is recorded and the others go on. Predictors that allow it (hosted APIs)
-run several examples at once in threads.
+driver's staging folder, and the driver commits it (``<id>.state.npz``, then ``<id>.<ext>``) and writes the
+example's ledger entry, ``OUT/.stages/predict/<id>.json``, whose ``result`` IS the example's record. An
+example's key (``PredictStage.key``) is a hash of the predictor's settings, the example's own seed (for a
+seeded predictor) and its model inputs (the first frame's file, the prompt with the paper's suffix, the
+negative prompt). So a rerun skips an example whose key is unchanged and whose video (and state) is still
+there, retries a failed one, and makes again exactly those whose settings or inputs changed, saying why. One
+example's failure is recorded and the others go on. Predictors that allow it (hosted APIs) run several
+examples at once in threads.
 
-Records: each example's record is written on its own, atomically and fsynced, to ``OUT/.generation/<id>.json``
-(committed with the example's outputs; a failed or interrupted example's when its result comes back), and
-merged into ``generation.json`` as results come in and when the run ends or is interrupted. A rerun merges
-records a killed run left only there, and rebuilds the record of a finished video that has none (from the
-predictor's own state, e.g. a hosted prediction's id, else from the seed and prompts).
+Two records, one written from the other: the ledger, and ``generation.json``, written from the ledger when
+the run ends (``PredictStage.finish``: every ledger entry made with this run's key for its example, plus
+what failed before it ran and what this run started and stopped). A killed run leaves the ledger; the next
+run writes generation.json again, and rewrites a damaged or missing one. Folders written by earlier versions
+of this stage are read in one place, section "older layouts" at the end, only when an example has a video
+but no ledger entry.
 
 Hosted runs in this process stop gracefully on SIGTERM or Ctrl-C: no new example starts and no new
 prediction is created; requests already sent get a few seconds (the client's ``stop_grace_s``, 3 s) to be
@@ -57,16 +54,16 @@ from typing import Any
 from ..atomic import atomic_file
 from ..benchmark import NEGATIVE_PROMPT, full_prompt
 from ..context import RunContext
-from ..driver import ItemResult, Selection, Stage, StageReport, StageWorker, plan, run_stage
+from ..driver import (ItemResult, RunOptions, Selection, Stage, StageReport, StageWorker, plan, read_ledger,
+                      run_stage, stage_dir)
 from ..errors import EXAMPLE_ERRORS, UserError
-from ..evaluation.keys import write_json
 from ..evaluation.provenance import versions
-from ..executors import Executor, LocalExecutor, Resources, Shard, failure_record
+from ..executors import LocalExecutor, Resources, failure_record
 from ..folders import (FRAMES_DIR, METADATA_FILE, VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name,
                        state_path)
 from ..groundtruth.bundle import Sample, bundle_dirs, read_bundle_file, refuse_imported
 from ..hashing import digest, file_digest
-from ..jsonio import read_json, write_json as write_json_atomic
+from ..jsonio import read_json, write_json
 from ..predictors import (SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo, example_seed,
                           model_inputs, predictor_info)
 from ..video import write_video
@@ -112,119 +109,12 @@ def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps:
         write_video(tmp_video, pred.frames, fps=fps if fps is not None else pred.fps, lossless=pred.lossless)
 
 
-def remove_temporaries(out_dir: Path, sample_id: str) -> None:
-    """Remove what an interrupted run of an earlier version of this stage left of ``sample_id``'s video in
-    ``out_dir`` itself: ``.<id>.partial.*`` and the encoder's ``..<id>.partial.*.tmp.*`` (runs now write in
-    the driver's staging folder, which the driver cleans)."""
-    for pattern in (glob.escape(f".{sample_id}.partial") + "*", glob.escape(f"..{sample_id}.partial.") + "*"):
-        for stale in Path(out_dir).glob(pattern):
-            try:
-                stale.unlink()
-            except OSError:
-                pass
-
-
 def input_digest(bundle: Path) -> str:
     """A hash of what a video model is given for the example in ``bundle`` (``predictors.model_inputs``): the
     first frame (its file's bytes: nothing is decoded), the task prompt with the paper's suffix and the
     negative prompt. A BundleError when the bundle lacks them."""
     frame = read_bundle_file(bundle, f"{FRAMES_DIR}/{frame_name(0)}", file_digest)
     return digest(frame, full_prompt(Sample(bundle).prompt), NEGATIVE_PROMPT)
-
-
-def _read_settings(path: Path):
-    """The settings ``.predictor.json`` records, None when absent; a damaged one is a UserError (deciding that
-    nothing is finished could pay for hosted predictions again)."""
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: damaged ({type(exc).__name__}); it records the settings of the predictions in "
-                        f"{path.parent}. Delete it to write the selected predictions again") from None
-
-
-def settings_digest(settings: dict) -> str:
-    """A short hash of a run's settings: per-example records of other settings are not merged."""
-    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def write_example_record(out_dir: Path, sample_id: str, digest: str, entry: dict) -> None:
-    """``OUT/.generation/<id>.json``: the example's record, atomically and fsynced, as soon as it is done."""
-    write_json_atomic(PredictionsFolder(out_dir).record(sample_id),
-                      {"id": sample_id, "settings": digest, "entry": entry}, durable=True)
-
-
-class GenerationLog:
-    """generation.json: the run's model and parameters, and one record per example (thread-safe).
-
-    Records of earlier runs with the same settings are kept; the per-example records in ``.generation/``
-    (committed with each example's outputs) are merged in, and a finished video without a record gets one
-    rebuilt by ``repair``. Rewritten atomically after every example and by ``merge``."""
-
-    def __init__(self, out_dir: Path, header: dict):
-        self.out_dir = Path(out_dir)
-        self.path = PredictionsFolder(self.out_dir).generation
-        self.records_dir = PredictionsFolder(self.out_dir).records_dir
-        self.digest = settings_digest({k: header[k] for k in ("predictor", "settings")})
-        self.lock = threading.Lock()
-        previous = read_json(self.path, "it is rebuilt from the per-example records") or {}
-        if not isinstance(previous, dict):
-            previous = {}
-        same = {k: previous.get(k) for k in ("predictor", "settings")} == {k: header[k] for k in ("predictor", "settings")}
-        examples = previous.get("examples") if same else None
-        self.doc = {**header, "examples": dict(examples) if isinstance(examples, dict) else {}}
-        self._merge_records(remove_others=True)
-        self._write()
-
-    def repair(self, finished, recover) -> None:
-        """Give each of the ``finished`` examples (their video is there) without a succeeded record one rebuilt
-        by ``recover(sample_id)`` (the run was killed between an example's video and its record)."""
-        repaired = []
-        with self.lock:
-            for sample_id in finished:
-                entry = self.doc["examples"].get(sample_id)
-                if isinstance(entry, dict) and entry.get("status") == "succeeded":
-                    continue
-                rebuilt = {"status": "succeeded", **(recover(sample_id) or {}),
-                           "recovered": "the video was on disk without its record (an interrupted run); rebuilt on rerun"}
-                rebuilt["status"] = "succeeded"
-                write_example_record(self.out_dir, sample_id, self.digest, rebuilt)
-                self.doc["examples"][sample_id] = rebuilt
-                repaired.append(sample_id)
-            if repaired:
-                log.warning("%s: rebuilt the lost records of %d finished example(s): %s", self.path, len(repaired),
-                            ", ".join(repaired))
-                self._write()
-
-    def _merge_records(self, remove_others: bool = False) -> None:
-        """Take every per-example record of these settings (newer than generation.json's copy)."""
-        if not self.records_dir.is_dir():
-            return
-        for path in sorted(self.records_dir.glob("*.json")):
-            doc = read_json(path, "ignored")
-            if not isinstance(doc, dict) or not isinstance(doc.get("entry"), dict) or not isinstance(doc.get("id"), str):
-                continue
-            if doc.get("settings") != self.digest:
-                if remove_others:  # a record of other settings: those examples are written again
-                    path.unlink(missing_ok=True)
-                continue
-            self.doc["examples"][doc["id"]] = doc["entry"]
-
-    def _write(self) -> None:
-        self.doc["examples"] = dict(sorted(self.doc["examples"].items()))
-        write_json(self.path, self.doc)
-
-    def record(self, sample_id: str, entry: dict) -> None:
-        with self.lock:
-            self.doc["examples"][sample_id] = entry
-            self._write()
-
-    def merge(self) -> None:
-        """Merge the per-example records (workers elsewhere, or examples whose result never came back)."""
-        with self.lock:
-            self._merge_records()
-            self._write()
 
 
 class PredictStage(Stage):
@@ -245,10 +135,8 @@ class PredictStage(Stage):
         self.source, self.instance, self.stopper = source, instance, stopper
         self.resources = predict_resources(info, ctx)
         self.seeded = settings.get("seed") is not None  # ctx.seed is the base of per-example seeds
-        self.previous = _read_settings(PredictionsFolder(self.out_dir).settings)  # before this run rewrites it
-        self.records = settings_digest({"predictor": info.name, "settings": settings})
-        self.log: GenerationLog | None = None
-        self.recorded: set[str] = set()
+        self.stopped: dict[str, dict] = {}  # examples this run started and stopped: their records
+        self.older = OlderLayouts(self)
 
     # -- what the driver asks --------------------------------------------------------------------------
 
@@ -280,8 +168,7 @@ class PredictStage(Stage):
                               "kind": info.kind.value, "needs_blender": info.needs_blender,
                               "writes_state": info.writes_state},  # so a worker needs no registration of its own
                 "split_dir": str(self.split_dir.resolve()), "out_dir": str(self.out_dir.resolve()),
-                "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options),
-                "records": self.records}
+                "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options)}
 
     def worker_instance(self) -> "PredictWorker | None":
         return self.instance
@@ -295,68 +182,85 @@ class PredictStage(Stage):
         return video is not None and (not self.info.writes_state or state_path(video).is_file())
 
     def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
-        """A prediction made before ledgers: ``.predictor.json`` held these settings and the video (and state)
-        is there. Its result: its record, where there is one."""
-        if self.previous != self.settings or not self.intact(item_id):
-            return None
-        doc = read_json(PredictionsFolder(self.out_dir).record(item_id), "ignored")
-        if isinstance(doc, dict) and doc.get("settings") == self.records and isinstance(doc.get("entry"), dict):
-            return doc["entry"]
-        return {"status": "succeeded"}
+        """An example with a video but no ledger entry: a folder an earlier version of this stage wrote, or a
+        run killed between committing the video and writing its ledger entry (``OlderLayouts.adopt``)."""
+        return self.older.adopt(item_id) if self.intact(item_id) else None
 
     def prepare(self, todo: list[str]) -> None:
         """The predictor's check before any example runs (e.g. a hosted model's token: one error, nothing
-        sent; the driver calls this only when some example will run, so an up-to-date folder needs no token),
-        then the records."""
-        check = getattr(self.source, "preflight", None)
-        if check is not None:
-            check(self.ctx)
-        self._open_log()
+        sent; the driver calls this only when some example will run, so an up-to-date folder needs no token)."""
+        if self.source is not None:
+            self.source.preflight(self.ctx)
         if self.stopper is not None:
             self.stopper.install()
 
     def finish(self, report: StageReport) -> None:
+        """Write generation.json from the ledger (``records``); when it already says that, touch nothing. After
+        a run that attempted every selected example, remove what older layouts no longer need."""
         if self.stopper is not None:
             self.stopper.uninstall()
-        if self.log is None:
-            if report.interrupted:  # stopped before any example ran: nothing to record
-                return
-            self._open_log()
-        self.log.merge()  # first: another process's records of examples it finished (reused here) are no loss
-        self.log.repair(report.reused, self.rebuild)
-        for sample_id, reason in report.failed.items():  # failed before it ran (e.g. its inputs are unreadable)
-            if sample_id not in self.recorded:
-                self.record_result(sample_id, {"status": "failed", "error": reason, "result": {}})
-        self.log.merge()  # whatever finished, in any order, also when the run is interrupted
+        path = PredictionsFolder(self.out_dir).generation
+        examples = self.records(report)
+        if examples or path.exists():
+            doc = {**self.header(), "examples": examples}
+            if read_json(path, "it is written again from the ledger") != doc:
+                write_json(path, doc, indent=2, allow_nan=False)
+        if report.completed:
+            self.older.clean()
 
     # -- records ---------------------------------------------------------------------------------------
 
-    def _open_log(self) -> None:
-        source = self.source
-        header = {"predictor": self.info.name, "target": self.info.target, "kind": self.info.kind.value,
-                  "settings": self.settings, "model": source.generation_info(self.ctx) if source else {},
-                  "versions": versions(VERSION_PACKAGES)}
-        self.log = GenerationLog(self.out_dir, header)
-        if self.previous != self.settings:
-            if self.previous is not None:
-                log.info("%s held %s; now %s", self.out_dir, self.previous, self.settings)
-            write_json_atomic(PredictionsFolder(self.out_dir).settings, self.settings, indent=None)
-            self.previous = self.settings
+    def header(self) -> dict:
+        """generation.json's header: the predictor, its settings, the model's own parameters, package versions."""
+        return {"predictor": self.info.name, "target": self.info.target, "kind": self.info.kind.value,
+                "settings": self.settings, "model": self.source.generation_info(self.ctx) if self.source else {},
+                "versions": versions(VERSION_PACKAGES)}
+
+    def records(self, report: StageReport) -> dict[str, dict]:
+        """Every example's record, sorted by id: the ledger entries made with this run's key for their example
+        (whichever process made them; an example outside the selection, with the key it would have), then the
+        examples that failed before they ran, then those this run started and stopped."""
+        found: dict[str, dict] = {}
+        folder = stage_dir(self.out_dir, STAGE)
+        for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+            entry = read_ledger(self.out_dir, STAGE, path.stem)
+            if entry is None or entry.get("status") not in ("succeeded", "failed") or \
+                    entry.get("key") != self.key_of(path.stem, report):
+                continue
+            found[path.stem] = self.record_of(path.stem, entry.get("status"), entry.get("result"), entry.get("error"))
+        for item_id, reason in report.failed.items():
+            found.setdefault(item_id, self.record_of(item_id, "failed", None, reason))
+        for item_id, record in self.stopped.items():
+            if item_id not in found and item_id not in report.succeeded:
+                found[item_id] = record
+        return dict(sorted(found.items()))
+
+    def key_of(self, item_id: str, report: StageReport) -> str | None:
+        """This run's key of ``item_id`` (the plan's, or computed for an example outside the selection); None
+        when it has none (no such bundle, or an unreadable one)."""
+        if item_id in report.keys:
+            return report.keys[item_id]
+        if item_id in report.selected or not (self.split_dir / item_id).is_dir():
+            return None
+        try:
+            return self.key(item_id, {"bundle": str(self.split_dir / item_id)})
+        except EXAMPLE_ERRORS:
+            return None
+
+    def record_of(self, item_id: str, status, result: dict | None, error: str | None) -> dict:
+        record = dict(result or {})
+        if status == "failed":
+            record.setdefault("seed", example_seed(self.ctx.seed, item_id))
+            record.update(status="failed", error=record.get("error") or error or "failed")
+        return record
 
     def record_result(self, sample_id: str, entry: dict) -> None:
-        """``on_result``: put an example's ledger entry into generation.json (and, for a failed or interrupted
-        one, write its record; a succeeded one's came with its outputs). Examples not started: no record."""
-        status, record = entry.get("status"), dict(entry.get("result") or {})
-        self.recorded.add(sample_id)
-        if status != "succeeded":
-            if status == "failed":
-                record.setdefault("seed", example_seed(self.ctx.seed, sample_id))
-                record.update(status="failed", error=record.get("error") or entry.get("error") or "failed")
-            elif not record.get("started"):
-                return
-            write_example_record(self.out_dir, sample_id, self.records, record)
-        if self.log is not None:
-            self.log.record(sample_id, record)
+        """``on_result``: keep the record of an example this run started and stopped (no ledger entry)."""
+        result = entry.get("result") or {}
+        if entry.get("status") not in ("succeeded", "failed") and result.get("started"):
+            self.stopped[sample_id] = dict(result)
+        else:
+            self.stopped.pop(sample_id, None)
 
     def rebuild(self, sample_id: str) -> dict:
         """What a finished video's lost record can be rebuilt from: the predictor's state, seed and prompts."""
@@ -366,29 +270,27 @@ class PredictStage(Stage):
             entry.update(prompt=inputs.prompt, negative_prompt=inputs.negative_prompt)
         except EXAMPLE_ERRORS:
             pass
-        recover = getattr(self.source, "recover_record", None)
-        entry.update((recover(self.out_dir, sample_id) if recover else None) or {})
+        entry.update((self.source.recover_record(self.out_dir, sample_id) if self.source else None) or {})
         return entry
 
 
 def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | None = None,
-            ids: list[str] | None = None, limit: int | None = None, progress: bool = True,
-            predictor: Predictor | None = None, dry_run: bool = False, executor: Executor | None = None,
-            shard: Shard = Shard()) -> PredictSummary:
+            run: RunOptions = RunOptions(), predictor: Predictor | None = None,
+            dry_run: bool = False) -> PredictSummary:
     """Run predictor ``name`` (a registered name or a "module:attr" plug-in) over the reference bundles
     in ``split_dir``; returns what was written, skipped and failed (with ``dry_run``: what would be
-    generated and how many paid calls that takes, sending and writing nothing). ``executor`` runs the
-    examples (default: this process, ``predictor.concurrency`` at once); ``shard`` takes its part."""
+    generated and how many paid calls that takes, sending and writing nothing). ``run`` selects the examples
+    and runs them (default: all, in this process, ``predictor.concurrency`` at once)."""
     ctx = ctx or PredictContext()
     if not 0.0 <= ctx.severity <= 1.0:
         raise UserError(f"severity must lie in [0, 1], got {ctx.severity}")
     out_dir = Path(out_dir)
     split_dir = Path(split_dir)
     ctx = replace(ctx, out_dir=out_dir)
-    executor = executor or LocalExecutor()
-    local = isinstance(executor, LocalExecutor)
+    executor = run.executor or LocalExecutor()
+    local = executor.in_process
     info = predictor.info if predictor is not None else predictor_info(name)
-    selected = Selection.of(ids, limit, shard).apply([r.name for r in bundle_dirs(split_dir)], str(split_dir))
+    selected = run.selection.apply([r.name for r in bundle_dirs(split_dir)], str(split_dir))
     if info.needs_blender:
         refuse_imported([split_dir / i for i in selected], f"predictor '{info.name}' re-simulates the scene")
     if predictor is None and (local or dry_run):
@@ -406,7 +308,8 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
             executor = LocalExecutor(threads=max(executor.threads, int(predictor.concurrency(ctx))))
             worker = stage.instance = PredictWorker(stage.job(), predictor=predictor, ctx=ctx)
         stopper = stage.stopper = _GracefulStop(worker) if local and info.kind == Kind.HOSTED else None
-        report = run_stage(stage, Selection(), executor, progress, on_result=stage.record_result)
+        report = run_stage(stage, replace(run, selection=Selection(), executor=executor),
+                           on_result=stage.record_result)
         if stopper is not None and stopper.signal_name:
             log.warning("stopped by %s: %d example(s) finished and recorded, %d failed, %d not done; predictions "
                         "already created are kept with their ids; rerun the same command to resume without paying "
@@ -457,22 +360,20 @@ class PredictWorker(StageWorker):
         self.ctx = ctx or PredictContext(RunContext.from_job(job["run"]), job["severity"], job["seed"],
                                          out_dir=self.out_dir, options=MappingProxyType(dict(job["options"])))
         self.predictor = predictor or PredictorInfo(**{**job["predictor"], "kind": Kind(job["predictor"]["kind"])}).create()
-        self.records = job.get("records")  # the settings digest of the per-example records
         self.stopping = threading.Event()
         self.closed = False
 
     def stop(self) -> None:
         """Start no new example; the predictor (if it can) creates nothing new and finishes what is paid for."""
         self.stopping.set()
-        request_stop = getattr(self.predictor, "request_stop", None)
-        if request_stop is not None:
-            request_stop()
+        self.predictor.request_stop()
 
     def stopped(self) -> bool:
         return self.stopping.is_set()
 
     def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
-        """Outputs: ``<id>.state.npz`` (when the prediction has one), ``<id>.<ext>``, ``.generation/<id>.json``."""
+        """Outputs: ``<id>.state.npz`` (when the prediction has one), then ``<id>.<ext>``; the result is the
+        example's record (the ledger keeps it)."""
         if self.stopping.is_set():
             return ItemResult(status=INTERRUPTED, error="not started: the run was stopped",
                               result={"status": INTERRUPTED, "error": "not started: the run was stopped"})
@@ -502,8 +403,6 @@ class PredictWorker(StageWorker):
         outputs = [video.name]
         if pred.state is not None:
             outputs.insert(0, PredictionsFolder(staging).state(item_id).name)
-        write_example_record(staging, item_id, self.records, entry)
-        outputs.append(PredictionsFolder(staging).record(item_id).relative_to(staging).as_posix())
         self._remove_superseded(item_id, video.suffix, pred.state is not None)
         return ItemResult(outputs=outputs, result=entry)
 
@@ -577,3 +476,99 @@ def predict_resources(info, ctx: PredictContext) -> Resources:
 def example_context(ctx: PredictContext, sample_id: str) -> PredictContext:
     """``ctx`` with the seed of example ``sample_id``: ``example_seed(ctx.seed, sample_id)`` (ctx.seed is the base)."""
     return replace(ctx, seed=example_seed(ctx.seed, sample_id))
+
+
+# -- older layouts ------------------------------------------------------------------------------------------
+# Folders written by earlier versions of this stage, read here only: from PredictStage.adopt (an example with a
+# video but no ledger entry) and, for (2), by the worker before it makes an example; their files are removed
+# only by PredictStage.finish after a run that attempted every selected example, once every video in the
+# folder has its ledger entry. Nothing is predicted again for a video whose settings they show to be this run's:
+#   (0) before ledgers: ``.predictor.json`` (the run's settings) and generation.json's records;
+#   (1) ledgers with a record per example, ``.generation/<id>.json`` ({"id", "settings": settings_digest,
+#       "entry": the record}), and ``.predictor.json``;
+#   (2) ``.<id>.partial*`` videos written in OUT itself, before staging (``remove_temporaries``);
+#   (3) today's: a video committed without its ledger entry (a run killed in between), taken when
+#       generation.json's predictor and settings are this run's; its record is rebuilt when it has none.
+
+OLD_SETTINGS_FILE = ".predictor.json"
+OLD_RECORDS_DIR = ".generation"
+
+
+def settings_digest(settings: dict) -> str:
+    """Layout (1): the short hash of a run's settings that its per-example records name."""
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+class OlderLayouts:
+    """The records that older layouts of ``stage.out_dir`` hold (see the comment above)."""
+
+    def __init__(self, stage: PredictStage):
+        self.stage = stage
+        self.out_dir = stage.out_dir
+        self._read: dict[str, Any] = {}
+
+    def _settings(self) -> Any:
+        """What ``.predictor.json`` holds, None when absent; a damaged one is a UserError (deciding that nothing
+        is finished could pay for hosted predictions again)."""
+        if "settings" not in self._read:
+            path = self.out_dir / OLD_SETTINGS_FILE
+            try:
+                self._read["settings"] = json.loads(path.read_text())
+            except FileNotFoundError:
+                self._read["settings"] = None
+            except (OSError, ValueError) as exc:
+                raise UserError(f"{path}: damaged ({type(exc).__name__}); it records the settings of the "
+                                f"predictions in {path.parent}. Delete it to write the selected predictions "
+                                "again") from None
+        return self._read["settings"]
+
+    def _generation(self) -> dict | None:
+        """generation.json's records when its predictor and settings are this run's; None when they are not."""
+        if "generation" not in self._read:
+            doc = read_json(PredictionsFolder(self.out_dir).generation, "it is written again from the ledger")
+            same = isinstance(doc, dict) and doc.get("predictor") == self.stage.info.name \
+                and doc.get("settings") == self.stage.settings
+            examples = doc.get("examples") if same else None
+            self._read["generation"] = (examples if isinstance(examples, dict) else {}) if same else None
+        return self._read["generation"]
+
+    def adopt(self, item_id: str) -> dict | None:
+        """The record of ``item_id``'s video (which is there) when an older layout shows it was made with this
+        run's settings; None otherwise (it is predicted)."""
+        stage = self.stage
+        old = read_json(self.out_dir / OLD_RECORDS_DIR / f"{item_id}.json", "ignored")
+        mine = settings_digest({"predictor": stage.info.name, "settings": stage.settings})
+        if isinstance(old, dict) and old.get("id") == item_id and old.get("settings") == mine \
+                and isinstance(old.get("entry"), dict):
+            return {**old["entry"], "status": "succeeded"}
+        generation = self._generation()
+        if generation is None and self._settings() != stage.settings:
+            return None
+        record = (generation or {}).get(item_id)
+        if isinstance(record, dict) and record.get("status") == "succeeded":
+            return record
+        return {**stage.rebuild(item_id), "status": "succeeded",
+                "recovered": "the video was on disk without its record (an interrupted run); rebuilt on rerun"}
+
+    def clean(self) -> None:
+        """Remove ``.predictor.json`` and ``.generation/`` once every video in the folder has its ledger entry."""
+        old = [self.out_dir / OLD_SETTINGS_FILE, self.out_dir / OLD_RECORDS_DIR]
+        if not any(path.exists() for path in old):
+            return
+        videos = {p.stem for ext in VIDEO_EXTENSIONS for p in self.out_dir.glob(f"*{ext}") if not p.name.startswith(".")}
+        if any(read_ledger(self.out_dir, STAGE, video) is None for video in videos):
+            return
+        (self.out_dir / OLD_SETTINGS_FILE).unlink(missing_ok=True)
+        shutil.rmtree(self.out_dir / OLD_RECORDS_DIR, ignore_errors=True)
+
+
+def remove_temporaries(out_dir: Path, sample_id: str) -> None:
+    """Remove what an interrupted run of an earlier version of this stage left of ``sample_id``'s video in
+    ``out_dir`` itself: ``.<id>.partial.*`` and the encoder's ``..<id>.partial.*.tmp.*`` (runs now write in
+    the driver's staging folder, which the driver cleans)."""
+    for pattern in (glob.escape(f".{sample_id}.partial") + "*", glob.escape(f"..{sample_id}.partial.") + "*"):
+        for stale in Path(out_dir).glob(pattern):
+            try:
+                stale.unlink()
+            except OSError:
+                pass

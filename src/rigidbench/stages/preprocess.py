@@ -46,9 +46,9 @@ from typing import Any
 import torch
 
 from ..benchmark import full_prompt
-from ..driver import ItemResult, Selection, Stage, StageReport, StageWorker, read_ledger, run_stage, stage_dir
+from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage, stage_dir
 from ..errors import BundleError, ConfigError, UserError
-from ..executors import Executor, LocalExecutor, Resources, Shard
+from ..executors import LocalExecutor, Resources
 from ..folders import FRAMES_DIR, METADATA_FILE, PROMPT_FILE, frame_name
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
 from ..hashing import digest
@@ -388,10 +388,9 @@ class PreprocessWorker(StageWorker):
 
 
 def run_preprocess(data: str | Path, out: str | Path, *, model: str = "wan-2.2", split: str | None = None,
-                   limit: int | None = None, model_path: str | None = None, device: str | None = None,
-                   shard_size: int | None = None, progress: bool = True, shard: Shard = Shard(),
-                   resize: str = "bicubic", vae_dtype: str = "auto", ids=None,
-                   executor: Executor | None = None) -> PreprocessSummary:
+                   run: RunOptions = RunOptions(), model_path: str | None = None, device: str | None = None,
+                   shard_size: int | None = None, resize: str = "bicubic",
+                   vae_dtype: str = "auto") -> PreprocessSummary:
     """Encode the bundles of ``data`` (a split directory or a data root) into the cache ``out``: the first
     ``limit`` (or the ``ids``), this ``shard``'s part of them, on ``executor`` (default: this process).
     ``shard_size`` is accepted for older callers and unused (version 3 keeps one file per clip)."""
@@ -399,10 +398,10 @@ def run_preprocess(data: str | Path, out: str | Path, *, model: str = "wan-2.2",
     if split_dir.name == "eval":
         log.warning("%s looks like the evaluation split; the paper fine-tunes on the disjoint training split",
                     split_dir)
-    executor = executor or LocalExecutor()
+    executor = run.executor or LocalExecutor()
     stage = PreprocessStage(split_dir, Path(out), model=model, model_path=model_path, device=device, resize=resize,
-                            vae_dtype=vae_dtype, remote=not isinstance(executor, LocalExecutor), progress=progress)
-    report = run_stage(stage, Selection.of(ids, limit, shard), executor, progress=progress)
+                            vae_dtype=vae_dtype, remote=not executor.in_process, progress=run.progress)
+    report = run_stage(stage, run)
     encoded = stage.prompts_encoded + sum(int(report.results[i].get("prompts_encoded", 0)) for i in report.ran)
     return PreprocessSummary(cache=Path(out), encoded=list(report.ran), skipped=list(report.reused),
                              failed=dict(report.failed), redone=dict(report.redone), prompts_encoded=encoded,

@@ -12,6 +12,7 @@ first (``stages.probe_intervene``).
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 from pathlib import Path
@@ -20,7 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..driver import ItemResult, Stage, StageWorker, read_ledger
+from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage
+from ..errors import UserError
 from ..hashing import digest
 from ..perception.device import resolve_device
 from ..probe.inlp import (MAX_ITER, MIN_R2, RIDGE, inlp, random_orthonormal, removed_variance, total_variance,
@@ -171,5 +173,34 @@ class BasesWorker(StageWorker):
         return ItemResult(outputs=[rel], result={**info, "digest": _bases_digest(cell)})
 
 
-__all__ = ["BASES_VERSION", "BasesStage", "BasesWorker", "bases_key", "bases_path", "cell_id", "fit_bases", "load_bases",
-           "rounds_of"]
+BASES_COLUMNS = ["block", "tau", "procedure", "rank", "rounds", "rounds_x3", "iterations", "stopped", "k_pc", "alpha_pc",
+                 "removed_variance", "top_k_variance", "random_removed_variance", "total_variance", "final_train_r2",
+                 "first_heldout_r2", "last_heldout_r2", "train_rows", "heldout_rows", "inlp_seconds", "inlp_device",
+                 "inlp_dtype"]
+
+
+def fit_cells(store: ActivationStore, out: Path, cells: list[tuple[int, float]], device: str, inlp_dtype: str,
+              procedure: str = "stable", progress: bool = True) -> tuple[StageReport, list[dict]]:
+    """Run the ``probe-bases`` stage on ``cells`` into ``out`` and write ``out/bases.csv``: (the stage's
+    report, each cell's facts in cell order). UserError when any cell could not be fitted."""
+    fitted = run_stage(BasesStage(store, out, cells, device, inlp_dtype, procedure), RunOptions(progress=progress))
+    if fitted.failed:
+        raise UserError(f"{store.dir}: the bases of {len(fitted.failed)} cell(s) could not be fitted ("
+                        + "; ".join(f"{k}: {v}" for k, v in list(fitted.failed.items())[:3]) + ")")
+    facts = []
+    for b, tau in cells:
+        info = {k: v for k, v in fitted.results[cell_id(b, tau)].items() if k not in ("key", "digest")}
+        facts.append({"block": b, "tau": tau, **info})
+    with (Path(out) / "bases.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=BASES_COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        for f in facts:
+            w.writerow({**f, "procedure": f.get("procedure", "stable"), "rounds": rounds_of(f),
+                        "rounds_x3": 3 * rounds_of(f), "final_train_r2": f["train_r2"][-1] if f["train_r2"] else "",
+                        "first_heldout_r2": f["heldout_r2"][0] if f["heldout_r2"] else "",
+                        "last_heldout_r2": f["heldout_r2"][-1] if f["heldout_r2"] else ""})
+    return fitted, facts
+
+
+__all__ = ["BASES_VERSION", "BasesStage", "BasesWorker", "bases_key", "bases_path", "cell_id", "fit_bases",
+           "fit_cells", "load_bases", "rounds_of"]

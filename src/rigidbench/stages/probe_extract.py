@@ -32,9 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..driver import ItemResult, Selection, Stage, StageReport, StageWorker, read_ledger, run_stage, stage_dir
+from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage, stage_dir
 from ..errors import ConfigError, UserError
-from ..executors import Executor, Shard
 from ..folders import CONTACTS_FILE, MASKS_FILE, METADATA_FILE, TRAJECTORIES_FILE
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir
 from ..hashing import digest
@@ -309,10 +308,9 @@ class ExtractWorker(StageWorker):
 
 
 def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None, model_path: str | None = None,
-                taus=wan.DEFAULT_TAUS, device: str | None = None, limit: int | None = None,
-                chunk_size: int | None = None, seed: int = 0, progress: bool = True, dtype=None,
-                backbone_seed: int = wan.RANDOM_SEED, ids=None, shard: Shard | None = None,
-                executor: Executor | None = None, recipe: str | None = None,
+                taus=wan.DEFAULT_TAUS, device: str | None = None, run: RunOptions = RunOptions(),
+                chunk_size: int | None = None, seed: int = 0, dtype=None,
+                backbone_seed: int = wan.RANDOM_SEED, recipe: str | None = None,
                 overrides: dict | None = None) -> ExtractSummary:
     """Extract the first ``limit`` clips of the cache (or the ``ids``; this ``shard``'s part) into the store
     ``out``, conditioned as the ``recipe`` (``ours`` or ``release``) with ``overrides`` of its choices
@@ -322,9 +320,9 @@ def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None
 
     start = time.perf_counter()
     stage = ExtractStage(backbone, cache_dir, data, out, model=model, model_path=model_path, taus=taus,
-                         device=device, seed=seed, dtype=dtype, backbone_seed=backbone_seed, limit=limit,
+                         device=device, seed=seed, dtype=dtype, backbone_seed=backbone_seed, limit=run.selection.limit,
                          recipe_name=recipe, overrides=overrides)
-    report = run_stage(stage, Selection.of(ids, limit, shard), executor, progress=progress)
+    report = run_stage(stage, run)
     rows = {i: int(report.results[i].get("rows", 0)) for i in report.ran}
     return ExtractSummary(out=Path(out), extracted=[i for i in report.ran if rows[i]], skipped=list(report.reused),
                           failed={**report.failed, **stage.missing}, redone=dict(report.redone),

@@ -25,15 +25,17 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from ..blender.render import render_spec
+from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, plain, registry as load_registry
-from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, plan, run_stage
+from ..driver import ItemResult, Progress, Redo, RunOptions, Stage, StageReport, StageWorker, Why, plan, run_stage
 from ..errors import EXAMPLE_ERRORS, SpecError, UserError
-from ..executors import Executor, ProcessExecutor, Resources
+from ..executors import ProcessExecutor, Resources
+from ..extras import missing
 from ..groundtruth import bundle as B
 from ..hashing import digest, file_digest
 from ..manifest import ManifestRow
@@ -50,13 +52,6 @@ RENDER_WORKER = "rigidbench.stages.render:RenderWorker"
 RENDER_FORMAT = 1
 #: Preset fields that do not change what is rendered (how Blender keeps its data between frames).
 UNKEYED_PRESET_FIELDS = ("persistent_data",)
-SETTINGS_CHANGED = "its inputs or settings changed"  # driver.plan's reason for a changed key
-
-
-@dataclass(frozen=True)
-class Failure:
-    sample_id: str
-    reason: str
 
 
 def bundle_dir(data_dir: Path, row: ManifestRow) -> Path:
@@ -199,7 +194,7 @@ class RenderStage(Stage):
         path = self.root / item_id
         return path.is_dir() and not B.check_bundle(path, deep=False)
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | str | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> dict | Redo | None:
         """A bundle rendered before ledgers existed counts when complete and rendered at this preset (the old
         rule); otherwise it is rendered again, with a warning saying why."""
         path = self.root / item_id
@@ -212,7 +207,10 @@ class RenderStage(Stage):
         why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
                f"was rendered at the '{rendered_at}' preset, not '{self.quality}'")
         log.warning("example %s: the bundle in %s %s; rendering it again", item_id, path, why)
-        return f"the bundle {why}"
+        return Redo(Why.DAMAGED if problems else Why.CHANGED, f"the bundle {why}")
+
+    def check(self, selected: list[str]) -> None:
+        self.refuse_imported(selected)
 
     def refuse_imported(self, ids: Sequence[str]) -> None:
         """UserError when a bundle of ``ids`` was imported from the published set (never rendered over)."""
@@ -223,6 +221,8 @@ class RenderStage(Stage):
                                 "`render` does not overwrite them: render into another --data")
 
     def prepare(self, todo: list[str]) -> None:
+        if not bpy_available():  # checked here, in the driver's process: one line, before any worker starts
+            raise missing("bpy", "rendering (Blender as a Python module, bpy 4.5 on Python 3.11)")
         for sample_id in todo:  # a killed render's leftovers from before the driver (renders now use staging)
             leftover = self.root / f".{sample_id}.tmp"
             if leftover.is_dir():
@@ -236,15 +236,13 @@ def render_threads(workers: int) -> int | None:
     return max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None
 
 
-def render_stage(stage: RenderStage, selection: Selection = Selection(), executor: Executor | None = None,
-                 workers: int = 1, quiet: bool = True, progress: bool = True) -> StageReport:
-    """Run ``stage`` on the selected rows; returns the driver's report. ``executor`` None: each example in a
+def render_stage(stage: RenderStage, run: RunOptions = RunOptions(), workers: int = 1,
+                 quiet: bool = True) -> StageReport:
+    """Run ``stage`` as ``run`` says; returns the driver's report. No executor in ``run``: each example in a
     child process, ``workers`` at once (``quiet`` hides Blender's console output)."""
-    items = stage.items()
-    stage.refuse_imported(selection.apply(list(items), stage.where))  # before any work, as one error
-    if executor is None:
-        executor = ProcessExecutor(workers=workers, quiet=quiet, label=lambda task: task["id"])
-    return run_stage(stage, selection, executor, progress=progress)
+    if run.executor is None:
+        run = replace(run, executor=ProcessExecutor(workers=workers, quiet=quiet, label=lambda task: task["id"]))
+    return run_stage(stage, run)
 
 
 def _by_split(rows: Sequence[ManifestRow]) -> dict[str, list[ManifestRow]]:
@@ -256,21 +254,15 @@ def _by_split(rows: Sequence[ManifestRow]) -> dict[str, list[ManifestRow]]:
 
 def render_rows(rows: Sequence[ManifestRow], registry: Registry, data_dir: Path, quality: str = "paper",
                 workers: int = 1, device: str = "auto", config_dirs: Sequence[str | Path] = (),
-                progress: bool = True, quiet: bool = True, executor: Executor | None = None,
-                threads: int | None = None) -> tuple[list[str], list[Failure]]:
-    """Render the rows that are not up to date into DATA/<split>/<id>/ (see the module docstring); returns
-    (ids rendered now, failures). ``registry`` must be the one ``config_dirs`` produce. ``executor`` None:
-    each example in a child process, ``workers`` at once; ``threads``: Blender's per example (default: the
-    CPUs shared among the workers)."""
+                run: RunOptions = RunOptions(), quiet: bool = True, threads: int | None = None) -> list[StageReport]:
+    """Render the rows that are not up to date into DATA/<split>/<id>/ (see the module docstring); returns the
+    driver's report of each split. ``registry`` must be the one ``config_dirs`` produce. No executor in
+    ``run``: each example in a child process, ``workers`` at once; ``threads``: Blender's per example
+    (default: the CPUs shared among the workers)."""
     threads = threads if threads is not None else render_threads(workers)
-    done: list[str] = []
-    failures: list[Failure] = []
-    for split, group in _by_split(rows).items():
-        stage = RenderStage(data_dir, split, group, registry, quality, device, threads, config_dirs)
-        report = render_stage(stage, executor=executor, workers=workers, quiet=quiet, progress=progress)
-        done += report.ran
-        failures += [Failure(i, why) for i, why in report.failed.items()]
-    return done, failures
+    return [render_stage(RenderStage(data_dir, split, group, registry, quality, device, threads, config_dirs), run,
+                         workers=workers, quiet=quiet)
+            for split, group in _by_split(rows).items()]
 
 
 def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str,
@@ -283,7 +275,7 @@ def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str,
         stage = RenderStage(data_dir, split, group, registry, preset)
         items = stage.items()
         ids = list(items)
-        stage.refuse_imported(ids)
+        stage.check(ids)
         tasks = plan(stage, ids, items, StageReport(stage.name, stage.root, selected=ids), write=False)
         todo += [stage.rows[t["id"]] for t in tasks]
     return todo
@@ -307,6 +299,6 @@ def render_to_bundle(row: ManifestRow, registry: Registry, preset: RenderPreset,
 # -- command line ------------------------------------------------------------------------------------------
 
 
-__all__ = ["Failure", "QUALITIES", "RENDER_FORMAT", "RenderStage", "RenderWorker", "SETTINGS_CHANGED", "bundle_dir",
+__all__ = ["QUALITIES", "RENDER_FORMAT", "RenderStage", "RenderWorker", "bundle_dir",
            "is_complete", "looks", "preset_settings", "render_key", "render_rows",
            "render_stage", "render_threads", "render_to_bundle", "rows_to_render"]

@@ -17,9 +17,8 @@ from typing import Any, Sequence
 
 from ..blender.physics import CONTACTS_FILE, SCENE_SPEC_FILE, TRAJECTORIES_FILE, simulate_to_dir
 from ..config import Registry, plain, registry as load_registry
-from ..driver import ItemResult, Progress, Selection, Stage, StageReport, StageWorker, run_stage
+from ..driver import ItemResult, Progress, RunOptions, Stage, StageReport, StageWorker, run_stage
 from ..errors import EXAMPLE_ERRORS
-from ..executors import Executor
 from ..hashing import digest
 from ..manifest import ManifestRow
 from ..scene_spec.build import build_scene_spec
@@ -76,6 +75,11 @@ class SimulateStage(Stage):
     def root(self) -> Path:
         return self.out_dir
 
+    @property
+    def where(self) -> str:
+        splits = sorted({r.split for r in self.rows.values()})
+        return f"the {splits[0]} manifest" if len(splits) == 1 else "the manifest rows given"
+
     def items(self) -> dict[str, dict]:
         return {sample_id: row.to_dict() for sample_id, row in self.rows.items()}
 
@@ -97,20 +101,16 @@ class SimulateStage(Stage):
         return {} if (self.root / item_id / CONTACTS_FILE).is_file() else None
 
 
-def simulate_stage(stage: SimulateStage, selection: Selection = Selection(), executor: Executor | None = None,
-                   progress: bool = True) -> StageReport:
-    """Run ``stage`` on the selected rows (in this process by default); returns the driver's report."""
+def simulate_stage(stage: SimulateStage, run: RunOptions = RunOptions()) -> StageReport:
+    """Run ``stage`` as ``run`` says (in this process by default); returns the driver's report."""
     stage.root.mkdir(parents=True, exist_ok=True)
-    return run_stage(stage, selection, executor, progress=progress)
+    return run_stage(stage, run)
 
 
-def simulate_rows(rows, registry: Registry, out_dir: Path, progress: bool = True, *,
-                  config_dirs: Sequence[str | Path] = (), executor: Executor | None = None,
-                  ) -> tuple[list[tuple[str, str]], list[str]]:
-    """Simulate every row that is not up to date into ``out_dir/<id>/``; returns ((sample id, reason) per
-    failure, ids skipped as up to date)."""
-    report = simulate_stage(SimulateStage(out_dir, rows, registry, config_dirs), executor=executor, progress=progress)
-    return list(report.failed.items()), list(report.reused)
+def simulate_rows(rows, registry: Registry, out_dir: Path, run: RunOptions = RunOptions(), *,
+                  config_dirs: Sequence[str | Path] = ()) -> StageReport:
+    """Simulate the selected rows that are not up to date into ``out_dir/<id>/``; returns the driver's report."""
+    return simulate_stage(SimulateStage(out_dir, rows, registry, config_dirs), run)
 
 
 __all__ = ["SIMULATE_FORMAT", "SimulateStage", "SimulateWorker", "simulate_key", "simulate_rows", "simulate_stage"]
