@@ -208,8 +208,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
               "logsafe")),
     ("core", ("config", "context", "manifest", "scene_spec", "video", "firstframe", "executors", "driver")),
     ("domain", ("rigidbench", "blender", "groundtruth", "benchmark", "datasets", "metrics", "readouts", "perception",
-                "predictors", "stats", "evaluation")),
-    ("stages", ("train", "probe", "report", "validation", "preflight", "stages", "flows")),
+                "predictors", "stats", "evaluation", "submissions")),
+    ("stages", ("train", "probe", "report", "validation", "preflight", "stages", "flows", "leaderboard")),
     ("entry", ("commands", "cli", "__main__")),
 ]
 ROOT = PACKAGE_DIR.name  # "rigidbench"

@@ -11,6 +11,7 @@ import pytest
 
 from fixtures import published_set as ps  # noqa: E402
 
+from rigidbench.driver import RunOptions  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
 from rigidbench.stages.import_set import import_published  # noqa: E402
 
@@ -19,7 +20,7 @@ from rigidbench.stages.import_set import import_published  # noqa: E402
 def data(tmp_path_factory):
     root = tmp_path_factory.mktemp("faults")
     ps.write_set(root / "src", ps.DEFAULT_SAMPLES[:1])
-    assert import_published(root / "src", root / "data", progress=False).ok
+    assert import_published(root / "src", root / "data", run=RunOptions(progress=False)).exit_status() == 0
     return root / "data"
 
 
@@ -82,10 +83,10 @@ def test_a_damaged_score_record_is_scored_again(data, tmp_path, damage):
 
     preds = tmp_path / "preds"
     assert main(["predict", "reference", "--data", str(data), "--out", str(preds)]) == 0
-    first = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
+    first = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), run=RunOptions(progress=False))
     assert first.evaluated == ["00000"]
     (tmp_path / "run" / "examples" / "00000.json").write_bytes(damage)
-    second = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
+    second = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), run=RunOptions(progress=False))
     assert second.evaluated == ["00000"] and not second.failed
     assert second.results["overall"]["iou"]["mean"] == first.results["overall"]["iou"]["mean"]
 
@@ -99,14 +100,14 @@ def test_a_score_made_without_the_first_frame_check_is_not_reused_with_it(data, 
     other = tmp_path / "other"  # the same id in another set: a different scene and camera
     ps.write_set(other / "src", [ps.PublishedSample("00000", "free_fall", "modern_loft", "in_distribution", 991,
                                                     "apple")])
-    assert import_published(other / "src", other / "data", progress=False).ok
+    assert import_published(other / "src", other / "data", run=RunOptions(progress=False)).exit_status() == 0
     preds = tmp_path / "preds"
     assert main(["predict", "reference", "--data", str(other / "data"), "--out", str(preds)]) == 0
-    loose = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False, first_frame_check=False)
+    loose = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), first_frame_check=False, run=RunOptions(progress=False))
     assert loose.evaluated == ["00000"] and not loose.failed
-    strict = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False)
+    strict = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), run=RunOptions(progress=False))
     assert not strict.reused and "first frame does not match" in strict.failed["00000"]
-    again = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), progress=False, first_frame_check=False)
+    again = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), first_frame_check=False, run=RunOptions(progress=False))
     assert again.evaluated == ["00000"] and not again.reused and not again.failed
 
 
@@ -141,6 +142,7 @@ BAD_ARGUMENTS = [
     ("file for folder", "probe fit --acts {file} --out {new}", "--acts"),
     ("file for folder", "probe intervene --acts {dir} --cache {dir} --out {file}", "--out"),
     ("file for folder", "probe report --probes {file} --out {new}", "--probes"),
+    ("file for folder", "leaderboard {dir} --out {file}", "--out"),
     # a folder where a file is expected
     ("folder for file", "manifest --split eval --out {dir}", "--out"),
     ("folder for file", "inputs --data {data} --out {dir}", "--out"),
@@ -167,6 +169,7 @@ BAD_ARGUMENTS = [
     ("missing", "probe fit --acts {missing} --out {new}", "--acts"),
     ("missing", "probe intervene --acts {dir} --cache {missing} --out {new}", "--cache"),
     ("missing", "probe report --intervene {missing} --out {new}", "--intervene"),
+    ("missing", "leaderboard {missing} --out {new}", "{missing}"),
     # read-only
     ("read-only", "download --data {ro}/data", "--data"),
     ("read-only", "import {dir} --data {ro}/data", "--data"),
@@ -187,6 +190,7 @@ BAD_ARGUMENTS = [
     ("read-only", "probe fit --acts {dir} --out {ro}", "--out"),
     ("read-only", "probe intervene --acts {dir} --cache {dir} --out {ro}/intervene", "--out"),
     ("read-only", "probe report --out {ro}/report", "--out"),
+    ("read-only", "leaderboard {dir} --out {ro}/site", "--out"),
     # negative
     ("negative", "import {dir} --data {new} --limit -1", "--limit"),
     ("negative", "simulate --split eval --limit -3", "--limit"),
@@ -214,6 +218,7 @@ BAD_ARGUMENTS = [
     ("zero", "preprocess --data {dir} --out {new} --limit 0", "--limit"),
     ("zero", "probe fit --acts {dir} --out {new} --epochs 0", "--epochs"),
     ("zero", "probe intervene --acts {dir} --cache {dir} --out {new} --resamples 0", "--resamples"),
+    ("zero", "leaderboard {dir} --out {new} --resamples 0", "--resamples"),
     # empty
     ("empty", "import {dir} --data {new} --ids ''", "--ids"),
     ("empty", "simulate --split eval --ids ,,,", "--ids"),
@@ -230,6 +235,22 @@ BAD_ARGUMENTS = [
     # a name that is not one
     ("unknown", "weights --download sam3", "--download"),
     ("unknown", "predict os:path --data {data} --out {new}", "os:path"),
+    # submit and verify, each kind of mistake
+    ("file for folder", "submit {file} --card {file} --validate-only", "RUN"),
+    ("file for folder", "submit {dir} --card {file} --videos {file}", "--videos"),
+    ("file for folder", "verify {dir} --rescore 1 --data {file}", "--data"),
+    ("folder for file", "submit {dir} --card {dir}", "--card"),
+    ("folder for file", "submit {dir} --card {file} --out {dir}", "--out"),
+    ("file above", "submit {dir} --card {file} --out {file}/entry.tar.gz", "--out"),
+    ("missing", "submit {missing} --card {file}", "RUN"),
+    ("missing", "submit {dir} --card {missing}", "--card"),
+    ("missing", "verify {missing}", "{missing}"),
+    ("missing", "verify {dir} --rescore 1 --data {missing}", "--data"),
+    ("missing", "verify {dir} --rescore 1", "--data"),
+    ("read-only", "submit {dir} --card {file} --out {ro}/entry.tar.gz", "--out"),
+    ("negative", "verify {dir} --rescore -1 --data {data}", "--rescore"),
+    ("negative", "verify {dir} --seed -1", "--seed"),
+    ("zero", "verify {dir} --rescore 0 --data {data}", "--rescore"),
 ]
 
 

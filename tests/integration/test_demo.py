@@ -2,6 +2,7 @@
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 from fixtures.blender import requires_bpy
@@ -41,6 +42,12 @@ def test_reduced_demo_renders_scores_and_reports(tmp_path, capsys):
         assert re.search(rf"^\s+{metric}: \S", text, re.M), f"no reason printed for skipped {metric}"
     report = re.search(r"^report: (.+)$", text, re.M)
     assert report and (out / "report" / "report.html").samefile(report.group(1))
+    # The demo's runs are no submission (issue 35): `submit --validate-only` names gt perception and the 5 examples
+    capsys.readouterr()
+    card = Path(__file__).resolve().parents[2] / "docs" / "card.example.yaml"
+    assert main(["submit", str(out / "runs" / "reference"), "--card", str(card), "--validate-only"]) == 2
+    refused = capsys.readouterr().err
+    assert ": gt perception: " in refused and ": missing examples: 5 of the 100 examples" in refused, refused
 
 
 def test_demo_rejects_an_unknown_mode(tmp_path, capsys):

@@ -25,7 +25,7 @@ from ..errors import ConfigError, UnknownNameError
 DEFAULT_DATASET = "rigidbench-eval"
 
 FIELDS = ("id", "name", "version", "title", "description", "archive", "size_bytes", "md5", "parts", "url",
-          "licence", "doi", "record", "homepage", "citation")
+          "licence", "doi", "record", "homepage", "citation", "examples")
 _MD5 = re.compile(r"^[0-9a-fA-F]{32}$")
 _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 #: file names the download keeps beside the parts (download.py); a part may not take one of them
@@ -63,6 +63,7 @@ class DatasetDescription:
     homepage: str | None = None
     citation: str | None = None
     source: str = ""  # the YAML file it was read from
+    examples: int | None = None  # how many examples the archive holds (a complete submission scores them all)
 
     def identity(self) -> dict[str, Any]:
         """What a result or an imported bundle records about the dataset it came from."""
@@ -180,7 +181,8 @@ def parse_dataset(path: str | Path, data: Any) -> DatasetDescription:
         md5=_md5(r, "md5"), parts=_parts(r, archive, size_bytes, template), url_template=template or "",
         licence=r.text("licence"), title=r.str("title", ""), description=r.str("description", ""),
         doi=r.text("doi", None), record=None if record is None else str(record), homepage=r.text("homepage", None),
-        citation=r.text("citation", None), source=str(path))
+        citation=r.text("citation", None), source=str(path),
+        examples=r.int("examples", lo=1) if r.has("examples") else None)
 
 
 def list_datasets(extra_dirs: Iterable[str | Path] = ()) -> dict[str, DatasetDescription]:
