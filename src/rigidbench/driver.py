@@ -151,6 +151,22 @@ class Redo(str):
         return Redo, (self.why, self.detail)
 
 
+class Key(str):
+    """An example's key (the digest the ledger records) with ``facts``: what computing it found that the
+    stage needs later (content hashes, a file's path), JSON values. ``key()`` stays pure: the facts travel in
+    the key to ``adopt``, to the worker (``run(..., facts=)``) and to ``finish`` (``report.keys[id].facts``)."""
+
+    facts: Mapping[str, Any]
+
+    def __new__(cls, digest: str, facts: Mapping[str, Any] | None = None) -> "Key":
+        self = super().__new__(cls, digest)
+        self.facts = dict(facts or {})
+        return self
+
+    def __reduce__(self):
+        return Key, (str(self), dict(self.facts))
+
+
 # -- what a stage declares -----------------------------------------------------------------------------
 
 
@@ -179,8 +195,9 @@ class Stage(ABC):
         return str(self.root)
 
     @abstractmethod
-    def key(self, item_id: str, payload: Any) -> str:
-        """A hash of everything that determines the example's output (EXAMPLE_ERRORS: the example fails)."""
+    def key(self, item_id: str, payload: Any) -> "str | Key":
+        """A hash of everything that determines the example's output (EXAMPLE_ERRORS: the example fails); a
+        ``Key`` when it carries facts for later. Pure: it writes neither into ``payload`` nor into the stage."""
 
     @abstractmethod
     def job(self) -> dict:
@@ -226,7 +243,7 @@ class StageWorker(ABC):
     @abstractmethod
     def run(self, item_id: str, payload: Any, staging: Path, progress: Progress) -> "ItemResult":
         """Make example ``item_id`` (``payload``: its item) into ``staging``; ``progress(done, total)`` reports
-        sub-steps."""
+        sub-steps. A stage whose ``key`` returns a ``Key`` with facts has them passed as ``facts=``."""
 
     def stop(self) -> None:
         """Start nothing new (a graceful interrupt); optional."""
@@ -443,7 +460,9 @@ class ItemRunner:
         staging = None
         try:
             staging = fresh_staging(self.root, self.stage, item_id)
-            made = self.worker.run(item_id, task.get("payload"), staging, progress or (lambda done, total: None))
+            facts = {"facts": task["facts"]} if task.get("facts") else {}  # the Key's facts (Stage.key)
+            made = self.worker.run(item_id, task.get("payload"), staging, progress or (lambda done, total: None),
+                                   **facts)
             if made.status in ("succeeded", "failed"):
                 committed = {}
                 if made.status == "succeeded":
@@ -500,7 +519,7 @@ class StageReport:
     (skipped); ``failed``: id -> reason; ``redone``: id -> why an earlier output was not reused;
     ``results``: id -> the worker's result (ran and reused); ``interrupted``: ids stopped before they ran;
     ``elsewhere``: ids another process was working on (their lock was held), not done here; ``keys``: id ->
-    the key this run computed (``plan``)."""
+    the key this run computed (``plan``; a ``Key`` with its facts when the stage returns one)."""
 
     stage: str
     root: Path
@@ -598,7 +617,10 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
             continue
         if why is not None:
             report.redone[item_id] = why
-        todo.append({"id": item_id, "payload": payload, "key": key, "seen": None if entry is None else digest(entry)})
+        task = {"id": item_id, "payload": payload, "key": str(key), "seen": None if entry is None else digest(entry)}
+        if getattr(key, "facts", None):
+            task["facts"] = dict(key.facts)
+        todo.append(task)
     return todo
 
 
@@ -665,6 +687,133 @@ def _finishing(stage: Stage) -> Iterator[None]:
         lock.release()
 
 
+def _planned(stage: Stage, run: RunOptions, write: bool) -> tuple[StageReport, list[dict]]:
+    """Phases 1 to 4 of a run: the candidates (``items``), the selection (an unknown id is a UserError naming
+    ``where``), the stage's ``check`` of the selection, the plan (keys, ledger, adopted outputs; written only
+    with ``write``). Returns the report so far and the tasks still to run."""
+    items = stage.items()
+    ids = run.selection.apply(list(items), stage.where)
+    stage.check(ids)
+    report = StageReport(stage.name, stage.root, selected=ids, unit=stage.unit)
+    return report, plan(stage, ids, items, report, write=write)
+
+
+def plan_only(stage: Stage, run: RunOptions = RunOptions()) -> tuple[StageReport, list[dict]]:
+    """What ``run_stage`` would do, writing nothing (a dry run): the selection, the stage's ``check`` and the
+    plan, as a run makes them. Returns the report (``reused``, ``failed``, ``redone``, ``keys``) and the tasks
+    a run would make."""
+    return _planned(stage, run, write=False)
+
+
+class _Collector:
+    """This process's side of a run: the progress bars, and each example's ledger entry as it comes back
+    (``report``), with the examples another process held put aside for a second round (``deferred``, when
+    ``run.wait``)."""
+
+    def __init__(self, stage: Stage, report: StageReport, total: int, run: RunOptions,
+                 on_result: Callable[[str, dict], None] | None):
+        from tqdm import tqdm
+
+        self.stage, self.report, self.total, self.run, self.on_result = stage, report, total, run, on_result
+        self.bar = tqdm(total=total, unit=stage.unit, desc=stage.name, disable=not run.progress or not total,
+                        position=0)
+        self.sub: Any = None  # the second bar (a worker's sub-steps), opened by the first progress call
+        self.done: dict[str, int] = {}
+        self.deferred: list[dict] = []
+
+    def on_progress(self, task: dict, done: int, total: int) -> None:
+        if not self.run.progress:
+            return
+        if self.sub is None:
+            from tqdm import tqdm
+
+            self.sub = tqdm(total=self.total * total, unit=self.stage.steps, desc=f"{self.stage.name} "
+                            f"{self.stage.steps}s", position=1)
+        self.sub.update(done - self.done.get(task["id"], 0))
+        self.done[task["id"]] = done
+
+    def __call__(self, task: dict, entry: dict) -> None:
+        report, item_id, status = self.report, task["id"], entry.get("status")
+        if status == ELSEWHERE:
+            if self.run.wait and not task.get("wait"):
+                self.deferred.append({**task, "wait": True})
+                return
+            report.elsewhere.append(item_id)
+        elif status == "succeeded":  # made here, or by another process since the plan (then up to date)
+            (report.reused if entry.get("elsewhere") else report.ran).append(item_id)
+            report.results[item_id] = entry.get("result") or {}
+        elif status == "failed":
+            report.failed[item_id] = entry.get("error") or "failed"
+            if self.run.progress:
+                self.bar.write(f"FAILED {item_id}: {report.failed[item_id]}")
+            else:
+                log.warning("%s: example %s failed: %s", self.stage.name, item_id, report.failed[item_id])
+        elif status == STOPPED:  # its ledger entry cannot be written (ItemRunner): stop, as one clear line
+            report.interrupted.append(item_id)
+            raise UserError(f"{self.stage.name} stopped at example {item_id}: {entry.get('error')}")
+        else:
+            report.interrupted.append(item_id)
+        self.bar.update(1)
+        if self.on_result is not None and status != ELSEWHERE:
+            self.on_result(item_id, entry)
+
+    def close(self) -> None:
+        self.bar.close()
+        if self.sub is not None:
+            self.sub.close()
+
+
+def _execute(stage: Stage, executor: Executor, todo: list[dict], collect: _Collector) -> None:
+    """Run ``todo`` through ``executor`` (in this process: one runner around the stage's ready worker), then,
+    in a second round, the examples ``collect`` put aside to wait for."""
+    job = {"stage": stage.name, "root": str(Path(stage.root).resolve()), "worker": stage.worker, "job": stage.job()}
+    runner = ItemRunner(job, stage.worker_instance()) if executor.in_process else None
+    try:
+        tasks = todo
+        while tasks:  # a second round only for the examples waited for (wait)
+            executor.map(RUNNER, job, tasks, stage.resources, on_result=collect,
+                         instance=_Lent(runner) if runner is not None else None,
+                         on_progress=collect.on_progress if stage.steps else None)
+            tasks, collect.deferred[:] = list(collect.deferred), []
+            if tasks:
+                log.info("%s: waiting for %d %s(s) that another process is working on in %s", stage.name,
+                         len(tasks), stage.unit, stage.root)
+    finally:
+        if runner is not None:
+            runner.close()
+
+
+def _planned_notes(stage: Stage, report: StageReport) -> None:
+    """After the plan: a killed run's leftovers of the examples up to date removed; what is skipped, and what
+    is made again because it changed, logged."""
+    for item_id in report.reused:
+        _remove_leftovers(stage, item_id)
+    if report.reused:
+        log.info("%s: %d of %d selected %ss are up to date in %s; skipping them", stage.name, len(report.reused),
+                 len(report.selected), stage.unit, stage.root)
+    changed = [i for i, why in report.redone.items() if why.why is Why.CHANGED]
+    if changed:
+        log.warning("%s: %d %s(s) made with other inputs or settings are made again: %s", stage.name, len(changed),
+                    stage.unit, ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else ""))
+
+
+def _settle(stage: Stage, report: StageReport, todo: list[dict], started: float) -> None:
+    """After the run, finished or not: what was never attempted counts as not started, lists in selection
+    order, the time, the examples left to another process logged, the empty staging folder removed."""
+    ids = report.selected
+    finished = set(report.ran) | set(report.reused) | set(report.failed) | set(report.interrupted) \
+        | set(report.elsewhere)
+    report.interrupted += [t["id"] for t in todo if t["id"] not in finished]
+    report.ran.sort(key=ids.index)
+    report.reused.sort(key=ids.index)
+    report.seconds = time.time() - started
+    if report.elsewhere:
+        log.warning("%s: %d %s(s) are being done by another process in %s, not here: %s; rerun when it is done "
+                    "(or pass --wait to wait for them)", stage.name, len(report.elsewhere), stage.unit, stage.root,
+                    ", ".join(report.elsewhere[:10]) + (" ..." if len(report.elsewhere) > 10 else ""))
+    _remove_if_empty(stage_dir(stage.root, stage.name) / STAGING_DIR)
+
+
 def run_stage(stage: Stage, run: RunOptions = RunOptions(),
               on_result: Callable[[str, dict], None] | None = None) -> StageReport:
     """Run ``stage`` as ``run`` says (see the module docstring); returns the report. In this order: the
@@ -673,107 +822,27 @@ def run_stage(stage: Stage, run: RunOptions = RunOptions(),
     to run), the run, ``finish``. ``on_result(id, ledger entry)`` is called on this process as each example
     finishes (e.g. to update a shared record). ``run.wait``: wait for the examples another process is
     working on (after the others), rather than skip them (``report.elsewhere``)."""
-    from tqdm import tqdm
-
-    selection, executor, progress, wait = run.selection, run.executor, run.progress, run.wait
     started = time.time()
-    items = stage.items()
-    ids = selection.apply(list(items), stage.where)
-    stage.check(ids)
-    report = StageReport(stage.name, stage.root, selected=ids, unit=stage.unit)
-    todo = plan(stage, ids, items, report)
-    for item_id in report.reused:
-        _remove_leftovers(stage, item_id)
-    if report.reused:
-        log.info("%s: %d of %d selected %ss are up to date in %s; skipping them", stage.name, len(report.reused),
-                 len(ids), stage.unit, stage.root)
-    changed = [i for i, why in report.redone.items() if why.why is Why.CHANGED]
-    if changed:
-        log.warning("%s: %d %s(s) made with other inputs or settings are made again: %s", stage.name, len(changed),
-                    stage.unit, ", ".join(changed[:10]) + (" ..." if len(changed) > 10 else ""))
-    executor = executor or LocalExecutor()
+    report, todo = _planned(stage, run, write=True)
+    _planned_notes(stage, report)
+    executor = run.executor or LocalExecutor()
     if todo:  # before any bar opens: a preflight error is then one clean line
         stage_dir(stage.root, stage.name).mkdir(parents=True, exist_ok=True)
         stage.prepare([t["id"] for t in todo])
-    bar = tqdm(total=len(todo), unit=stage.unit, desc=stage.name, disable=not progress or not todo, position=0)
-    sub: dict[str, Any] = {"bar": None, "done": {}}
-
-    def on_progress(task: dict, done: int, total: int) -> None:
-        if not progress:
-            return
-        if sub["bar"] is None:
-            sub["bar"] = tqdm(total=len(todo) * total, unit=stage.steps, desc=f"{stage.name} {stage.steps}s", position=1)
-        step = done - sub["done"].get(task["id"], 0)
-        sub["done"][task["id"]] = done
-        sub["bar"].update(step)
-
-    deferred: list[dict] = []  # another process held them in the first round: waited for in a second (wait)
-
-    def collect(task: dict, entry: dict) -> None:
-        item_id = task["id"]
-        status = entry.get("status")
-        if status == ELSEWHERE:
-            if wait and not task.get("wait"):
-                deferred.append({**task, "wait": True})
-                return
-            report.elsewhere.append(item_id)
-        elif status == "succeeded":  # made here, or by another process since the plan (then up to date)
-            (report.reused if entry.get("elsewhere") else report.ran).append(item_id)
-            report.results[item_id] = entry.get("result") or {}
-        elif status == "failed":
-            report.failed[item_id] = entry.get("error") or "failed"
-            if progress:
-                bar.write(f"FAILED {item_id}: {report.failed[item_id]}")
-            else:
-                log.warning("%s: example %s failed: %s", stage.name, item_id, report.failed[item_id])
-        elif status == STOPPED:  # its ledger entry cannot be written (ItemRunner): stop, as one clear line
-            report.interrupted.append(item_id)
-            raise UserError(f"{stage.name} stopped at example {item_id}: {entry.get('error')}")
-        else:
-            report.interrupted.append(item_id)
-        bar.update(1)
-        if on_result is not None and status != ELSEWHERE:
-            on_result(item_id, entry)
-
-    job = {"stage": stage.name, "root": str(Path(stage.root).resolve()), "worker": stage.worker, "job": stage.job()}
+    collect = _Collector(stage, report, len(todo), run, on_result)
     try:
         if todo:
-            runner = ItemRunner(job, stage.worker_instance()) if executor.in_process else None
-            try:
-                tasks = todo
-                while tasks:  # a second round only for the examples waited for (wait)
-                    executor.map(RUNNER, job, tasks, stage.resources, on_result=collect,
-                                 instance=_Lent(runner) if runner is not None else None,
-                                 on_progress=on_progress if stage.steps else None)
-                    tasks, deferred[:] = list(deferred), []
-                    if tasks:
-                        log.info("%s: waiting for %d %s(s) that another process is working on in %s", stage.name,
-                                 len(tasks), stage.unit, stage.root)
-            finally:
-                if runner is not None:
-                    runner.close()
+            _execute(stage, executor, todo, collect)
         report.completed = True
     finally:
-        bar.close()
-        if sub["bar"] is not None:
-            sub["bar"].close()
-        finished = set(report.ran) | set(report.reused) | set(report.failed) | set(report.interrupted) \
-            | set(report.elsewhere)
-        report.interrupted += [t["id"] for t in todo if t["id"] not in finished]
-        report.ran.sort(key=ids.index)
-        report.reused.sort(key=ids.index)
-        report.seconds = time.time() - started
-        if report.elsewhere:
-            log.warning("%s: %d %s(s) are being done by another process in %s, not here: %s; rerun when it is done "
-                        "(or pass --wait to wait for them)", stage.name, len(report.elsewhere), stage.unit, stage.root,
-                        ", ".join(report.elsewhere[:10]) + (" ..." if len(report.elsewhere) > 10 else ""))
-        _remove_if_empty(stage_dir(stage.root, stage.name) / STAGING_DIR)
+        collect.close()
+        _settle(stage, report, todo, started)
         with _finishing(stage):
             stage.finish(report)
     return report
 
 
-__all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "LEDGER_DIR", "Redo", "RunOptions", "Selection",
-           "Stage", "StageReport", "StageWorker", "Why", "commit", "fresh_staging", "ledger_outcomes", "ledger_path",
-           "lock_path", "output_kinds", "outputs_intact", "plan", "read_ledger", "run_stage", "stage_dir",
-           "staging_path", "write_ledger"]
+__all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "Key", "LEDGER_DIR", "Redo", "RunOptions",
+           "Selection", "Stage", "StageReport", "StageWorker", "Why", "commit", "fresh_staging", "ledger_outcomes",
+           "ledger_path", "lock_path", "output_kinds", "outputs_intact", "plan", "plan_only", "read_ledger",
+           "run_stage", "stage_dir", "staging_path", "write_ledger"]

@@ -3,18 +3,17 @@ atomic commit through staging, failure records, and the same outputs through eve
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from rigidbench.driver import (ItemRunner, Selection, commit, ledger_path, read_ledger,
+from rigidbench.driver import (ItemRunner, Redo, RunOptions, Selection, StageReport, Why, commit, ledger_path, read_ledger,
                                run_stage, staging_path)
 from rigidbench.errors import UserError
 from rigidbench.executors import LocalExecutor, ProcessExecutor, Shard
 
 from fixtures import child_env
+from fixtures.children import kill_when, python
 from fixtures.toy_stage import ToyStage, calls
 
 PAYLOADS = {"a": {"n": 1}, "b": {"n": 2}, "c": {"n": 3}, "d": {"n": 4}}
@@ -35,40 +34,40 @@ def test_selection_orders_limits_shards_and_names_unknown_ids():
 
 
 def test_rerun_skips_changed_settings_redo_exactly_the_changed_items(tmp_path):
-    first = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+    first = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert first.ran == ["a", "b", "c", "d"] and not first.reused and not first.failed
     assert outputs(tmp_path)["out/c.txt"] == "6" and outputs(tmp_path)["out/c.dir/value"] == "6"
-    again = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+    again = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert again.ran == [] and again.reused == ["a", "b", "c", "d"]
     assert again.results["b"] == {"value": 4}
     assert calls(tmp_path) == ["a", "b", "c", "d"]  # nothing ran twice
     changed = dict(PAYLOADS, b={"n": 20})
-    third = run_stage(ToyStage(tmp_path, changed), progress=False)
+    third = run_stage(ToyStage(tmp_path, changed), RunOptions(progress=False))
     assert third.ran == ["b"] and third.redone == {"b": "its inputs or settings changed"}
     assert outputs(tmp_path)["out/b.txt"] == "40"
-    fourth = run_stage(ToyStage(tmp_path, changed, factor=3), progress=False)  # a setting every item shares
+    fourth = run_stage(ToyStage(tmp_path, changed, factor=3), RunOptions(progress=False))  # a setting every item shares
     assert fourth.ran == ["a", "b", "c", "d"] and outputs(tmp_path)["out/d.txt"] == "12"
 
 
 def test_a_bad_example_is_recorded_and_retried_and_the_others_go_on(tmp_path):
     payloads = dict(PAYLOADS, b={"n": 2, "bad": True})
-    report = run_stage(ToyStage(tmp_path, payloads), progress=False)
+    report = run_stage(ToyStage(tmp_path, payloads), RunOptions(progress=False))
     assert report.ran == ["a", "c", "d"] and report.failed == {"b": "example b: bad input"}
     entry = read_ledger(tmp_path, "toy", "b")
     assert entry["status"] == "failed" and entry["error"] == "example b: bad input"
     assert not (tmp_path / "out" / "b.txt").exists() and not (tmp_path / "out" / "b.dir").exists()
-    fixed = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+    fixed = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert fixed.ran == ["b"] and fixed.redone["b"] == "its inputs or settings changed"
-    retried = run_stage(ToyStage(tmp_path / "r", payloads), progress=False)
-    again = run_stage(ToyStage(tmp_path / "r", payloads), progress=False)
+    retried = run_stage(ToyStage(tmp_path / "r", payloads), RunOptions(progress=False))
+    again = run_stage(ToyStage(tmp_path / "r", payloads), RunOptions(progress=False))
     assert retried.failed and again.redone["b"].startswith("it failed before (example b: bad input)")
 
 
 def test_missing_output_or_damaged_ledger_runs_the_item_again(tmp_path):
-    run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+    run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     (tmp_path / "out" / "a.txt").unlink()
     ledger_path(tmp_path, "toy", "c").write_text("{trunc")
-    report = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+    report = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert report.ran == ["a", "c"] and report.redone == {"a": "its output is missing or damaged"}
     assert outputs(tmp_path)["out/a.txt"] == "2"
 
@@ -78,35 +77,27 @@ def test_a_killed_run_resumes_without_redoing_committed_items(tmp_path):
     the rerun cleans it, runs the unfinished examples only, and the outputs equal an uninterrupted run's."""
     payloads = dict(PAYLOADS, c={"n": 3, "slow": 30})
     code = ("from pathlib import Path; "
-            "from rigidbench.driver import run_stage; from fixtures.toy_stage import ToyStage; "
-            f"run_stage(ToyStage(Path({str(tmp_path)!r}), {payloads!r}), progress=False)")
-    proc = subprocess.Popen([sys.executable, "-c", code], env=child_env())
+            "from rigidbench.driver import RunOptions, run_stage; from fixtures.toy_stage import ToyStage; "
+            f"run_stage(ToyStage(Path({str(tmp_path)!r}), {payloads!r}), RunOptions(progress=False))")
     staging = staging_path(tmp_path, "toy", "c")
-    for _ in range(600):
-        if (staging / "out" / "c.dir").exists():
-            break
-        proc.poll()
-        assert proc.returncode is None, "the run ended before it reached the slow example"
-        __import__("time").sleep(0.05)
-    proc.kill()
-    proc.wait()
+    kill_when(python(code), (staging / "out" / "c.dir").exists)
     assert calls(tmp_path) == ["a", "b"] and not (tmp_path / "out" / "c.dir").exists()
-    report = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+    report = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert report.reused == ["a", "b"] and report.ran == ["c", "d"]
     assert not staging.exists()
     clean = tmp_path / "clean"
-    run_stage(ToyStage(clean, PAYLOADS), progress=False)
+    run_stage(ToyStage(clean, PAYLOADS), RunOptions(progress=False))
     assert outputs(tmp_path) == outputs(clean)
 
 
 def test_process_executor_gives_the_same_outputs_and_a_crash_fails_only_its_item(tmp_path, monkeypatch):
     monkeypatch.setenv("PYTHONPATH", child_env()["PYTHONPATH"])
-    run_stage(ToyStage(tmp_path / "local", PAYLOADS), progress=False)
+    run_stage(ToyStage(tmp_path / "local", PAYLOADS), RunOptions(progress=False))
     steps = []
     payloads = dict(PAYLOADS, d={"n": 4, "crash": True})
     executor = ProcessExecutor(workers=2)
     stage = ToyStage(tmp_path / "proc", payloads)
-    report = run_stage(stage, executor=executor, progress=False)
+    report = run_stage(stage, RunOptions(executor=executor, progress=False))
     assert sorted(report.ran) == ["a", "b", "c"] and "exited with code 3" in report.failed["d"]
     local = outputs(tmp_path / "local")
     assert outputs(tmp_path / "proc") == {k: v for k, v in local.items() if not k.startswith("out/d")}
@@ -120,8 +111,8 @@ def test_process_executor_gives_the_same_outputs_and_a_crash_fails_only_its_item
 
 def test_shards_partition_the_work_and_a_final_run_reuses_all(tmp_path):
     for i in range(2):
-        run_stage(ToyStage(tmp_path, PAYLOADS), Selection.of(shard=Shard(i, 2)), progress=False)
-    final = run_stage(ToyStage(tmp_path, PAYLOADS), progress=False)
+        run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(Selection.of(shard=Shard(i, 2)), progress=False))
+    final = run_stage(ToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert final.reused == ["a", "b", "c", "d"] and sorted(calls(tmp_path)) == ["a", "b", "c", "d"]
 
 
@@ -157,15 +148,41 @@ class LegacyToyStage(ToyStage):
         if not path.exists():
             return None
         held = path.read_text()
-        return {"value": int(held)} if held == str(payload["n"] * self.factor) else f"the old output holds {held}"
+        return {"value": int(held)} if held == str(payload["n"] * self.factor) else \
+            Redo(Why.CHANGED, f"the old output holds {held}")
 
 
 def test_outputs_from_before_ledgers_are_adopted_or_redone_with_the_reason(tmp_path):
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "a.txt").write_text("2")  # right for n=1, factor 2
     (tmp_path / "out" / "b.txt").write_text("99")  # wrong
-    report = run_stage(LegacyToyStage(tmp_path, PAYLOADS), progress=False)
+    report = run_stage(LegacyToyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
     assert report.reused == ["a"] and report.results["a"] == {"value": 2}
-    assert report.ran == ["b", "c", "d"] and report.redone == {"b": "the old output holds 99"}
+    assert report.ran == ["b", "c", "d"] and report.redone["b"].why is Why.CHANGED
+    assert report.redone == {"b": "its inputs or settings changed (the old output holds 99)"}
     assert read_ledger(tmp_path, "toy", "a")["adopted"] is True
     assert outputs(tmp_path)["out/b.txt"] == "4"
+
+
+def test_every_stage_reports_in_the_same_words(tmp_path, capsys):
+    """``StageReport.lines`` (what ``commands.report_stage`` prints): one count line, one line per reason examples
+    were made again (the first ten ids), each failure, and what to do, on stderr."""
+    from rigidbench.commands import report_stage
+
+    ids = [f"{i:05d}" for i in range(14)]
+    report = StageReport("render", tmp_path, selected=ids, unit="example", ran=ids[:12], reused=[],
+                         failed={"00012": "bad spec"}, interrupted=["00013"],
+                         redone={**{i: Redo(Why.CHANGED) for i in ids[:11]},
+                                 "00011": Redo(Why.FAILED_BEFORE, "disk full")})
+    out, err = report.lines()
+    assert out == [f"render: 12 made, 0 up to date, 1 failed, 1 not started of 14 example(s) -> {tmp_path}",
+                   "  made again, its inputs or settings changed: " + ", ".join(ids[:10]) + " and 1 more",
+                   "  made again, it failed before: 00011"]
+    assert err == ["  FAILED 00012: bad spec",
+                   "  rerun the same command to retry what failed or did not start; finished examples are kept"]
+    assert report_stage(report) == 1
+    printed = capsys.readouterr()
+    assert printed.out.splitlines() == out and printed.err.splitlines() == err
+    clean = StageReport("evaluate", tmp_path, selected=["a"], reused=["a"], elsewhere=[], unit="example")
+    assert clean.lines() == ([f"evaluate: 0 made, 1 up to date, 0 failed of 1 example(s) -> {tmp_path}"], [])
+    assert clean.exit_status() == 0

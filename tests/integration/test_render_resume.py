@@ -12,10 +12,7 @@ import dataclasses
 import json
 import os
 import shutil
-import signal
-import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,11 +21,12 @@ import pytest
 import yaml
 
 from fixtures.blender import requires_bpy
+from fixtures.children import kill_when
 
 from rigidbench import manifest
 from rigidbench.cli import main
 from rigidbench.config import PACKAGE_CONFIG_DIR, registry as load_registry
-from rigidbench.driver import ledger_path, read_ledger, staging_path
+from rigidbench.driver import RunOptions, Why, ledger_path, read_ledger, staging_path
 from rigidbench.executors import LocalExecutor, ProcessExecutor
 from rigidbench.groundtruth import bundle as B
 from rigidbench.stages.render import RenderStage, render_rows, render_stage
@@ -78,8 +76,8 @@ def rows(reg):
 def clean(rows, reg, tmp_path_factory):
     """A data root with both examples rendered by one uninterrupted run (each in a child process)."""
     data = tmp_path_factory.mktemp("clean")
-    done, failures = render_rows(rows, reg, data, quality=QUALITY, progress=False)
-    assert done == list(IDS) and not failures
+    [report] = render_rows(rows, reg, data, quality=QUALITY, run=RunOptions(progress=False))
+    assert report.ran == list(IDS) and not report.failed
     return data
 
 
@@ -162,7 +160,7 @@ def test_a_rerun_renders_nothing_and_touches_nothing(clean, rows, reg):
     before = mtimes(clean)
     stage = RenderStage(clean, "eval", rows, reg, QUALITY)
     executor = RecordingProcesses()
-    report = render_stage(stage, executor=executor, progress=False)
+    report = render_stage(stage, RunOptions(executor=executor, progress=False))
     assert executor.seen == [] and report.ran == [] and report.reused == list(IDS) and not report.redone
     assert mtimes(clean) == before
     for sample_id in IDS:
@@ -179,16 +177,15 @@ def test_an_edited_object_renders_again_exactly_its_examples(clean, tmp_path, ed
             "--data", str(data), "--no-progress"]
     assert main(argv) == 0
     out = capsys.readouterr().out
-    assert f"rendered 1, skipped 1 complete, failed 0 of 2 eval examples ({QUALITY})" in out
-    assert f"1 of them had been rendered with other settings (preset or configuration) and were rendered " \
-           f"again: {CHANGED}" in out
+    assert f"render: 1 made, 1 up to date, 0 failed of 2 example(s) -> {data / 'eval'}" in out
+    assert f"  made again, its inputs or settings changed: {CHANGED}" in out
     assert mtimes(data / "eval" / "00019") == before
     assert restitution_of(data / "eval" / CHANGED, "pomegranate") == 0.45
     assert restitution_of(clean / "eval" / CHANGED, "pomegranate") == 0.15
     assert read_ledger(data / "eval", "render", CHANGED)["key"] != read_ledger(clean / "eval", "render", CHANGED)["key"]
     # the same settings again: nothing to do
     assert main(argv) == 0
-    assert "rendered 0, skipped 2 complete, failed 0 of 2" in capsys.readouterr().out
+    assert "render: 0 made, 2 up to date, 0 failed of 2 example(s)" in capsys.readouterr().out
 
 
 def test_a_damaged_bundle_made_before_ledgers_is_rendered_again_and_the_report_says_why(clean, rows, reg, tmp_path):
@@ -198,9 +195,10 @@ def test_a_damaged_bundle_made_before_ledgers_is_rendered_again_and_the_report_s
     tracks = data / "eval" / "00019" / B.TRACKS_FILE
     tracks.write_bytes(tracks.read_bytes()[:100])  # ... and damaged since
     executor = RecordingProcesses()
-    report = render_stage(RenderStage(data, "eval", rows, reg, QUALITY), executor=executor, progress=False)
+    report = render_stage(RenderStage(data, "eval", rows, reg, QUALITY), RunOptions(executor=executor, progress=False))
     assert executor.seen == ["00019"] and report.ran == ["00019"] and report.reused == ["00015"]
-    assert list(report.redone) == ["00019"] and report.redone["00019"].startswith("the bundle is damaged (tracks.npz")
+    assert list(report.redone) == ["00019"] and report.redone["00019"].why is Why.DAMAGED
+    assert report.redone["00019"].detail.startswith("the bundle is damaged (tracks.npz")
     assert_same_bundle(data / "eval" / "00019", clean / "eval" / "00019")
 
 
@@ -211,7 +209,7 @@ def test_a_bundle_made_before_ledgers_is_taken_over_not_rendered_again(clean, ro
     before = mtimes(data)
     stage = RenderStage(data, "eval", rows, reg, QUALITY)
     executor = RecordingProcesses()
-    report = render_stage(stage, executor=executor, progress=False)
+    report = render_stage(stage, RunOptions(executor=executor, progress=False))
     assert executor.seen == [] and report.reused == list(IDS) and not report.ran and not report.redone
     assert {k: v for k, v in mtimes(data).items() if not k.startswith("eval/.stages")} == before
     for sample_id in IDS:
@@ -220,14 +218,8 @@ def test_a_bundle_made_before_ledgers_is_taken_over_not_rendered_again(clean, ro
     # at another preset, the same bundles are not taken over
     other = RenderStage(tmp_path / "other", "eval", rows, reg, "preview")
     shutil.copytree(data / "eval" / "00019", tmp_path / "other" / "eval" / "00019")
-    assert other.adopt("00019", None, "k") == f"the bundle was rendered at the '{QUALITY}' preset, not 'preview'"
-
-
-def _children(pid: int) -> list[int]:
-    try:
-        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
-    except OSError:
-        return []
+    why = other.adopt("00019", None, "k")
+    assert why.why is Why.CHANGED and why.detail == f"the bundle was rendered at the '{QUALITY}' preset, not 'preview'"
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="kills a process group")
@@ -240,28 +232,15 @@ def test_a_killed_render_resumes_from_the_unfinished_example(clean, rows, reg, t
     staging = staging_path(data / "eval", "render", "00019")
     passes = staging / ".00019.tmp" / ".passes"
     env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    run = subprocess.Popen([sys.executable, "-m", "rigidbench", "render", "--split", "eval", "--ids", *IDS,
-                            "--quality", QUALITY, "--data", str(data), "--no-progress"],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, start_new_session=True)
-    killed = False
-    deadline = time.time() + 120
-    while time.time() < deadline and run.poll() is None:
-        if passes.is_dir() and any(passes.glob("*.exr")):
-            os.killpg(run.pid, signal.SIGKILL)  # the command and its render process, mid-example
-            killed = True
-            break
-        time.sleep(0.02)
-    run.wait(30)
-    assert killed, "the render finished before it could be killed"
-    for _ in range(100):  # the render process dies with its parent
-        if not _children(run.pid):
-            break
-        time.sleep(0.05)
+    # the command and its render process (one process group), killed mid-example
+    kill_when([sys.executable, "-m", "rigidbench", "render", "--split", "eval", "--ids", *IDS, "--quality", QUALITY,
+               "--data", str(data), "--no-progress"], lambda: passes.is_dir() and any(passes.glob("*.exr")),
+              timeout=120, env=env)
     assert B.check_bundle(data / "eval" / "00015") == [] and not (data / "eval" / "00019").exists()
     assert staging.is_dir() and read_ledger(data / "eval", "render", "00019") is None
 
     executor = RecordingProcesses()
-    report = render_stage(RenderStage(data, "eval", rows, reg, QUALITY), executor=executor, progress=False)
+    report = render_stage(RenderStage(data, "eval", rows, reg, QUALITY), RunOptions(executor=executor, progress=False))
     assert executor.seen == ["00019"] and report.ran == ["00019"] and report.reused == ["00015"]
     assert not staging.exists() and not report.redone  # never committed: new, not redone
     for sample_id in IDS:
@@ -274,7 +253,8 @@ def test_a_killed_render_resumes_from_the_unfinished_example(clean, rows, reg, t
 @pytest.fixture(scope="module")
 def simulated(rows, reg, tmp_path_factory):
     out = tmp_path_factory.mktemp("simulated")
-    assert simulate_rows(rows, reg, out, progress=False) == ([], [])
+    first = simulate_rows(rows, reg, out, run=RunOptions(progress=False))
+    assert first.ran == list(IDS) and not first.failed and not first.reused
     return out
 
 
@@ -282,15 +262,16 @@ def test_simulate_rerun_skips_and_an_edited_object_simulates_again_exactly_its_e
                                                                                       edited_pomegranate):
     before = mtimes(simulated)
     executor = RecordingLocal()
-    report = simulate_stage(SimulateStage(simulated, rows, reg), executor=executor, progress=False)
+    report = simulate_stage(SimulateStage(simulated, rows, reg), RunOptions(executor=executor, progress=False))
     assert executor.seen == [] and report.reused == list(IDS) and mtimes(simulated) == before
-    assert simulate_rows(rows, reg, simulated, progress=False) == ([], list(IDS))  # the CLI's call
+    again = simulate_rows(rows, reg, simulated, run=RunOptions(progress=False))  # the CLI's call
+    assert not again.failed and again.reused == list(IDS)
 
     out = tmp_path / "sim"
     shutil.copytree(simulated, out)
     kept = mtimes(out / "00019")
     edited = load_registry([edited_pomegranate])
-    report = simulate_stage(SimulateStage(out, rows, edited, [edited_pomegranate]), executor=executor, progress=False)
+    report = simulate_stage(SimulateStage(out, rows, edited, [edited_pomegranate]), RunOptions(executor=executor, progress=False))
     assert executor.seen == [CHANGED] and report.ran == [CHANGED] and report.reused == ["00019"]
     assert report.redone == {CHANGED: "its inputs or settings changed"}
     assert mtimes(out / "00019") == kept and restitution_of(out / CHANGED, "pomegranate") == 0.45
@@ -308,7 +289,7 @@ def test_a_killed_simulation_resumes_and_an_old_one_is_taken_over(simulated, row
     half.mkdir(parents=True)
     (half / "trajectories.npz").write_bytes(b"PK\x03\x04 half")
     executor = RecordingLocal()
-    report = simulate_stage(SimulateStage(out, rows, reg), executor=executor, progress=False)
+    report = simulate_stage(SimulateStage(out, rows, reg), RunOptions(executor=executor, progress=False))
     assert executor.seen == ["00019"] and report.ran == ["00019"] and report.reused == ["00015"]
     assert not staging_path(out, "simulate", "00019").exists()
     for sample_id in IDS:
@@ -322,6 +303,6 @@ def test_a_killed_simulation_resumes_and_an_old_one_is_taken_over(simulated, row
     legacy = tmp_path / "legacy"
     for sample_id in IDS:  # simulated before ledgers existed
         shutil.copytree(simulated / sample_id, legacy / sample_id)
-    report = simulate_stage(SimulateStage(legacy, rows, reg), executor=executor, progress=False)
+    report = simulate_stage(SimulateStage(legacy, rows, reg), RunOptions(executor=executor, progress=False))
     assert executor.seen == ["00019"] and report.reused == list(IDS)  # nothing more ran
     assert all(read_ledger(legacy, "simulate", i)["adopted"] for i in IDS)

@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +17,10 @@ import pytest
 
 
 from fixtures import published_set as ps  # noqa: E402
+from fixtures.children import kill_when, python  # noqa: E402
 
 from rigidbench.config import registry  # noqa: E402
-from rigidbench.driver import LEDGER_DIR, ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.driver import LEDGER_DIR, RunOptions, Selection, ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.executors import ProcessExecutor  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
 from rigidbench.predictors import PredictContext  # noqa: E402
@@ -42,8 +40,8 @@ CHANGED = "its inputs or settings changed"
 def reference_set(tmp_path_factory):
     root = tmp_path_factory.mktemp("resume")
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    assert import_published(published.parent, root / "data", registry=registry(), progress=False).imported == IDS
-    made = predict("reference", root / "data" / "eval", root / "reference", PredictContext(), progress=False)
+    assert import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False)).ran == IDS
+    made = predict("reference", root / "data" / "eval", root / "reference", PredictContext(), run=RunOptions(progress=False))
     assert made.written == IDS and not made.failed
     return root / "data", root / "reference"
 
@@ -57,7 +55,7 @@ def inputs(reference_set, tmp_path):
 
 
 def run(preds, data, out, **options):
-    return evaluate(preds, data, out, nets=FeatureNets(), progress=False, **options)
+    return evaluate(preds, data, out, nets=FeatureNets(), **options, run=RunOptions(progress=False))
 
 
 def stamps(out: Path) -> dict[str, int]:
@@ -182,6 +180,7 @@ def test_a_killed_run_resumes_to_the_results_of_a_clean_run(inputs, tmp_path):
 import pathlib, time
 from rigidbench.stages import evaluate as runner
 from rigidbench.perception.features import FeatureNets
+from rigidbench.driver import RunOptions
 real = runner.example_readouts
 def slow(sample, inputs, scores, out_dir):
     summary = real(sample, inputs, scores, out_dir)
@@ -190,18 +189,9 @@ def slow(sample, inputs, scores, out_dir):
         time.sleep(120)
     return summary
 runner.example_readouts = slow
-runner.evaluate({str(preds)!r}, {str(data)!r}, {str(out)!r}, nets=FeatureNets(), progress=False)
+runner.evaluate({str(preds)!r}, {str(data)!r}, {str(out)!r}, nets=FeatureNets(), run=RunOptions(progress=False))
 """
-    proc = subprocess.Popen([sys.executable, "-c", code])
-    try:
-        deadline = time.time() + 120
-        while not marker.exists():
-            assert proc.poll() is None, "the run ended before it reached the second example"
-            assert time.time() < deadline, "the run never reached the second example"
-            time.sleep(0.05)
-    finally:
-        proc.kill()
-        proc.wait()
+    kill_when(python(code), marker, timeout=120)
     staging = staging_path(out, "evaluate", "00001")
     assert Path(marker.read_text()) == staging and (staging / "examples" / "00001.readouts.json").is_file()
     assert sorted(p.name for p in (out / "examples").iterdir()) == ["00000.json", "00000.npz", "00000.readouts.json"]
@@ -244,8 +234,7 @@ def test_a_run_folder_from_before_ledgers_is_adopted_without_scoring(inputs, tmp
 
 def test_child_processes_write_what_this_process_writes(inputs, tmp_path):
     data, preds = inputs
-    here = evaluate(preds, data, tmp_path / "here", progress=False, ids=["00000", "00002"])
-    there = evaluate(preds, data, tmp_path / "there", progress=False, ids=["00000", "00002"],
-                     executor=ProcessExecutor(workers=2))
+    here = evaluate(preds, data, tmp_path / "here", run=RunOptions(Selection.of(["00000", "00002"]), progress=False))
+    there = evaluate(preds, data, tmp_path / "there", run=RunOptions(Selection.of(["00000", "00002"]), executor=ProcessExecutor(workers=2), progress=False))
     assert there.evaluated == here.evaluated == ["00000", "00002"]
     assert_same_outputs(tmp_path / "here", tmp_path / "there")

@@ -15,10 +15,10 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 
+from fixtures.probe_bundles import contact, write_bundle  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.driver import ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.driver import RunOptions, Selection, ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.errors import UserError  # noqa: E402
-from rigidbench.groundtruth.trajectory import Contact, Trajectory, save_contacts  # noqa: E402
 from rigidbench.probe import model as wan  # noqa: E402
 from rigidbench.probe.store import ActivationStore, shard_path  # noqa: E402
 from rigidbench.stages import probe_bases  # noqa: E402
@@ -28,49 +28,7 @@ from rigidbench.stages.probe_intervene import run_intervene  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
-W, H, T, FPS = 160, 96, 10, 8.0
 CLIPS = ("00000", "00001", "00002", "00003")
-
-
-def write_bundle(split_dir: Path, sample_id: str, seed: int) -> Path:
-    """What preprocessing and extraction read of a bundle: frames, masks of a ball rolling right over a
-    passive block, their trajectories, one contact, metadata and a prompt."""
-    from PIL import Image
-
-    rng = np.random.default_rng(seed)
-    d = split_dir / sample_id
-    (d / "frames").mkdir(parents=True)
-    masks = np.zeros((T, 2, H, W), bool)
-    x0, y0 = int(rng.integers(5, 40)), int(rng.integers(10, 40))
-    for t in range(T):
-        masks[t, 0, y0:y0 + 24, x0 + 8 * t:x0 + 8 * t + 24] = True
-        masks[t, 1, 70:90, 20:140] = True
-    frames = np.full((T, H, W, 3), 100, np.uint8) + rng.integers(0, 20, (T, H, W, 3), dtype=np.uint8)
-    frames[masks[:, 1]] = (120, 80, 40)
-    frames[masks[:, 0]] = (220, 30 + seed, 30)
-    for k in range(T):
-        Image.fromarray(frames[k]).save(d / "frames" / f"{k:05d}.png")
-    np.savez_compressed(d / "masks.npz", masks=masks, names=np.array(["ball", "block"]),
-                        roles=np.array(["active", "passive"]))
-    pos = np.zeros((2, T, 3))
-    pos[0, :, 0] = np.linspace(0, 1, T) + seed
-    pos[0, :, 2] = 1 - 0.05 * np.arange(T) ** 2 / T
-    pos[1] = [0.0, 0.0, 0.2]
-    quat = np.zeros((2, T, 4))
-    quat[..., 0] = 1
-    vel = np.gradient(pos, 1 / FPS, axis=1)
-    Trajectory(names=("ball", "block"), roles=("active", "passive"), fps=FPS, positions_m=pos, quat_wxyz=quat,
-               linear_velocity_m_s=vel, angular_velocity_rad_s=np.zeros_like(vel)).save(d / "trajectories.npz")
-    contact(d, 6)
-    (d / "prompt.txt").write_text(f"A red ball number {seed} rolls to the right.")
-    (d / "metadata.json").write_text(json.dumps({"sample_id": sample_id, "task": "bounce", "frames": T, "fps": FPS,
-                                                 "resolution": [W, H]}))
-    return d
-
-
-def contact(bundle: Path, frame: int) -> None:
-    save_contacts(bundle / "contacts.json", [Contact(frame=frame, a="ball", b="block", points_m=((0.0, 0.0, 0.3),),
-                                                     normals=((0.0, 0.0, 1.0),), distances_m=(0.0,))], T, 0.002)
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +37,7 @@ def made(tmp_path_factory, torch_one_thread):
     root = tmp_path_factory.mktemp("made")
     for n, clip in enumerate(CLIPS):
         write_bundle(root / "data" / "train", clip, n)
-    run_preprocess(root / "data" / "train", root / "cache", model="tiny", progress=False)
+    run_preprocess(root / "data" / "train", root / "cache", model="tiny", run=RunOptions(progress=False))
     return root / "data" / "train", root / "cache"
 
 
@@ -111,7 +69,7 @@ def loads(monkeypatch):
 
 
 def extract(data, cache, out, **options):
-    return run_extract("base", cache, data, out, model="tiny", progress=False, **options)
+    return run_extract("base", cache, data, out, model="tiny", **options, run=RunOptions(progress=False))
 
 
 def store_content(acts) -> tuple[dict, dict]:
@@ -172,7 +130,7 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
 
     # one clip of the cache is encoded again from another prompt: extraction redoes that clip alone
     (bundles / "00001" / "prompt.txt").write_text("A blue ball rolls to the right.")
-    assert run_preprocess(bundles, cache, model="tiny", progress=False).encoded == ["00001"]
+    assert run_preprocess(bundles, cache, model="tiny", run=RunOptions(progress=False)).encoded == ["00001"]
     assert extract(bundles, cache, acts).extracted == ["00001"]
     new, old = rows_of(acts, "00001"), clip_part(before, "00001")
     np.testing.assert_array_equal(new[0]["position"], old[0]["position"])  # the same targets, another text
@@ -244,15 +202,15 @@ def test_a_checkpoint_backbone_is_keyed_by_its_weights_not_its_folder(data, tmp_
     model = tiny_transformer()
     model.save_pretrained(tmp_path / "run-a" / "step-1")
     acts = tmp_path / "acts"
-    first = run_extract(str(tmp_path / "run-a" / "step-1"), cache, bundles, acts, progress=False, limit=2)
+    first = run_extract(str(tmp_path / "run-a" / "step-1"), cache, bundles, acts, run=RunOptions(Selection.of(None, 2), progress=False))
     assert first.extracted == ["00000", "00001"]
     shutil.copytree(tmp_path / "run-a", tmp_path / "run-b")  # the same weights elsewhere: nothing to do
-    moved = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, progress=False, limit=2)
+    moved = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, run=RunOptions(Selection.of(None, 2), progress=False))
     assert moved.skipped == ["00000", "00001"] and loads["backbone"] == 1
     with torch.no_grad():
         model.blocks[0].attn1.to_q.weight.mul_(2.0)
     model.save_pretrained(tmp_path / "run-b" / "step-1")  # other weights at the same place: all again
-    trained = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, progress=False, limit=2)
+    trained = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, run=RunOptions(Selection.of(None, 2), progress=False))
     assert trained.extracted == ["00000", "00001"] and set(trained.redone.values()) == \
         {"its inputs or settings changed"}
 
@@ -288,12 +246,13 @@ def test_an_activation_store_of_the_older_chunked_layout_reads_the_same(data, tm
 @pytest.fixture(scope="module")
 def store(made, tmp_path_factory, torch_one_thread):
     acts = tmp_path_factory.mktemp("store") / "acts"
-    run_extract("base", made[1], made[0], acts, model="tiny", progress=False)
+    run_extract("base", made[1], made[0], acts, model="tiny", run=RunOptions(progress=False))
     return acts
 
 
-def intervene(store, cache, out, **options):
-    return run_intervene(store, cache, out, **{"clips": 2, "n_resamples": 50, "progress": False, **options})
+def intervene(store, cache, out, clips=2, **options):
+    return run_intervene(store, cache, out, **{"run": RunOptions(Selection(limit=clips), progress=False),
+                                               "n_resamples": 50, **options})
 
 
 def effects(out):
@@ -340,7 +299,7 @@ def test_intervene_refits_the_bases_of_a_store_that_changed_and_reuses_copied_on
     changed = tmp_path / "acts"
     shutil.copytree(store, changed)
     ledger_path(changed, "probe-extract", "00003").unlink()  # the store loses a clip: other rows, other bases
-    run_extract("base", cache, made[0], changed, model="tiny", progress=False, limit=3)
+    run_extract("base", cache, made[0], changed, model="tiny", run=RunOptions(Selection.of(None, 3), progress=False))
     assert sorted(json.loads((changed / "manifest.json").read_text())["clips"]) == list(CLIPS[:3])
     refit = intervene(changed, cache, out)
     assert refit["bases_fitted_this_run"] == 6 and refit["clips_this_run"] == 2
@@ -453,7 +412,7 @@ def test_intervene_on_a_release_store_uses_its_conditioning_and_the_release_inlp
 
     bundles, cache = made
     acts = tmp_path / "acts"
-    run_extract("base", cache, bundles, acts, model="tiny", progress=False, recipe="release")
+    run_extract("base", cache, bundles, acts, model="tiny", recipe="release", run=RunOptions(progress=False))
     calls, _ = seen_forwards
     calls.clear()
     out = tmp_path / "intv"

@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..driver import ItemResult, Progress, RunOptions, Stage, StageReport, StageWorker, ledger_outcomes, run_stage
+from ..driver import (ItemResult, Key, Progress, RunOptions, Stage, StageReport, StageWorker, ledger_outcomes,
+                      outputs_intact, read_ledger, run_stage)
 from ..errors import EXAMPLE_ERRORS, EvaluationError
 from ..evaluation.aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
 from ..evaluation.keys import file_hash, input_key, reference_hash
@@ -158,8 +159,8 @@ def read_record(path: Path) -> dict | None:
 
 class EvaluateStage(Stage):
     """The evaluate stage as the driver sees it. Root: the run folder; items: the reference examples of the
-    split, payload ``{}`` (``key`` adds the example's ``input_key``, which the worker needs); key: the
-    example's input key (prediction video and world state, reference bundle, perception backend and version,
+    split, payload ``{}``; key: a ``Key`` whose facts hold what the worker and run.json need (the example's
+    ``input_key``, its prediction file and the content hashes); its digest covers the example's input key (prediction video and world state, reference bundle, perception backend and version,
     feature networks, metric list, protocol, score version; ``cache.input_key``, also stored in its record)
     together with the rules ``first_frame_check`` and ``allow_short``; its output: ``examples/<id>.npz``,
     ``<id>.readouts.json`` and ``<id>.json`` (the record, committed last)."""
@@ -178,11 +179,6 @@ class EvaluateStage(Stage):
         self.metrics = tuple(METRICS)
         self.nets_key = nets.key if nets is not None else feature_nets_key()
         self.all_ids = [p.name for p in bundle_dirs(self.data_dir)]
-        # filled by key(): the content hashes (run.json), the input key (the record's) and the prediction file
-        self.pred_hashes: dict[str, str] = {}
-        self.ref_hashes: dict[str, str] = {}
-        self.input_keys: dict[str, str] = {}
-        self.predictions: dict[str, Path] = {}
         self.results: dict | None = None
         self.skipped: dict[str, str] = {}
         self.started = time.time()
@@ -198,7 +194,7 @@ class EvaluateStage(Stage):
     def items(self) -> dict[str, Any]:
         return {sample_id: {} for sample_id in self.all_ids}
 
-    def key(self, item_id: str, payload: dict) -> str:
+    def key(self, item_id: str, payload: dict) -> Key:
         pred = find_prediction(self.pred_dir, item_id)
         if pred is None:
             raise EvaluationError(f"{item_id}: no prediction {item_id}.mp4 (or .webm/.mov/...) in {self.pred_dir}")
@@ -207,28 +203,28 @@ class EvaluateStage(Stage):
         ref_key = reference_hash(self.data_dir / item_id)
         key = input_key(pred_key, ref_key, f"{self.backend.name}:{self.backend.version}", self.nets_key,
                         self.metrics, f"protocol={self.rules.key()}")
-        self.pred_hashes[item_id], self.ref_hashes[item_id] = pred_key, ref_key
-        self.input_keys[item_id], self.predictions[item_id] = key, pred
-        payload["input_key"] = key
-        return digest(key, {"first_frame_check": self.first_frame_check, "allow_short": self.allow_short})
+        return Key(digest(key, {"first_frame_check": self.first_frame_check, "allow_short": self.allow_short}),
+                   {"input_key": key, "prediction": str(pred), "pred_hash": pred_key, "ref_hash": ref_key})
 
     def intact(self, item_id: str) -> bool:
         """Every output the worker listed (the .npz, the .readouts.json and the record) is still there as it was
         committed (the driver's check), the readouts file still reads as one, and the record was scored from
-        these inputs (its ``input_key``)."""
-        if not super().intact(item_id) or read_example_readouts(self.folder.readouts(item_id),
-                                                                "the example is scored again") is None:
+        these inputs (its ``input_key`` is the ledger entry's, which the driver found to hold this key)."""
+        entry = read_ledger(self.root, self.name, item_id)
+        if not outputs_intact(self.root, entry) or read_example_readouts(self.folder.readouts(item_id),
+                                                                         "the example is scored again") is None:
             return False
         record = read_record(self.folder.record(item_id))
-        return record is not None and record.get("input_key") == self.input_keys.get(item_id)
+        scored = ((entry.get("result") or {}).get("record") or {}).get("input_key")
+        return record is not None and scored is not None and record.get("input_key") == scored
 
-    def adopt(self, item_id: str, payload: dict, key: str) -> dict | None:
+    def adopt(self, item_id: str, payload: dict, key: Key) -> dict | None:
         """A record from before ledgers scored from these inputs, and accepted by these rules (it may have
         been scored under others: its facts say whether it would be refused now)."""
         record = read_record(self.folder.record(item_id))
-        if record is None or record.get("input_key") != payload["input_key"]:
+        if record is None or record.get("input_key") != key.facts["input_key"]:
             return None
-        if refusal(record, self.predictions[item_id], self.data_dir / item_id, self.first_frame_check,
+        if refusal(record, Path(key.facts["prediction"]), self.data_dir / item_id, self.first_frame_check,
                    self.allow_short) is not None:
             return None
         return {"record": record, "timings": {}}
@@ -297,8 +293,9 @@ class EvaluateStage(Stage):
             for k, v in report.results[sample_id].get("timings", {}).items():
                 timings[k] = timings.get(k, 0.0) + v
         feature_nets = self.nets if self.nets is not None else FeatureNets(skipped=dict(self.skipped))
+        facts = {i: k.facts for i, k in report.keys.items() if isinstance(k, Key)}
         info = run_info(self.model, self.pred_dir, self.data_dir, self.backend, feature_nets, self.metrics,
-                        self.pred_hashes, self.ref_hashes, timings, time.time() - self.started, sorted(report.ran),
+                        {i: f["pred_hash"] for i, f in facts.items()}, {i: f["ref_hash"] for i, f in facts.items()}, timings, time.time() - self.started, sorted(report.ran),
                         list(report.reused), failed)
         write_json(self.folder.run, {**info, "protocol": self.rules.facts(), "dataset": results["dataset"]},
                    indent=2, allow_nan=False)
@@ -320,7 +317,7 @@ def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> 
 class EvaluateWorker(StageWorker):
     """Scores one example per call into the staging folder; keeps its perception backend and feature
     networks loaded between calls (built from the job on a Ray actor or a child process, handed over
-    ready in this process). The payload must hold the example's ``input_key`` (``EvaluateStage.key``)."""
+    ready in this process). Its facts hold the example's ``input_key`` (``EvaluateStage.key``)."""
 
     STEPS = 3  # decode, perceive, measure
 
@@ -338,13 +335,13 @@ class EvaluateWorker(StageWorker):
         self.first_frame_check = bool(job.get("first_frame_check", True))
         self.allow_short = bool(job.get("allow_short", False))
 
-    def run(self, item_id: str, payload: dict, staging: Path, progress: Progress) -> ItemResult:
+    def run(self, item_id: str, payload: dict, staging: Path, progress: Progress, facts: dict) -> ItemResult:
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
         pred = find_prediction(self.pred_dir, item_id)
         if pred is None:
             raise EvaluationError(f"{item_id}: its prediction disappeared from {self.pred_dir}")
         record = _score_one(Sample(self.data_dir / item_id), pred, self.backend, self.nets, self.model,
-                            payload["input_key"], staging, self.cache_dir, timings, self.protocol,
+                            facts["input_key"], staging, self.cache_dir, timings, self.protocol,
                             self.first_frame_check, self.allow_short, progress)
         out = RunFolder(Path())  # the paths under the run folder, as written under staging
         outputs = [out.arrays(item_id), out.readouts(item_id), out.record(item_id)]  # the record last: done

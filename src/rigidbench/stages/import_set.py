@@ -20,7 +20,7 @@ from typing import Callable
 from ..config import registry as load_registry
 from ..datasets.convert import DIGEST_VERSION, convert_sample, find_published_root, published_samples, source_digest
 from ..datasets.datadir import data_lock, format_bytes, prepare_data_dir
-from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, ledger_path, run_stage
+from ..driver import ItemResult, Key, RunOptions, Stage, StageReport, StageWorker, ledger_path, run_stage
 from ..errors import EXAMPLE_ERRORS, BundleError, UserError
 from ..groundtruth import bundle as B
 from ..hashing import digest as driver_digest
@@ -43,18 +43,19 @@ def _is_current(final: Path, digest: str) -> bool:
 
 
 class ImportWorker(StageWorker):
-    """Converts one published sample (payload: its folder and manifest row) into ``<id>/`` in staging."""
+    """Converts one published sample (payload: its folder and manifest row; facts: its source ``digest``) into
+    ``<id>/`` in staging."""
 
     def __init__(self, job: dict, registry=None):
         super().__init__(job)
         self.registry = registry if registry is not None else load_registry(job["config_dirs"])
 
-    def run(self, item_id: str, payload: dict, staging: Path, progress) -> ItemResult:
+    def run(self, item_id: str, payload: dict, staging: Path, progress, facts: dict) -> ItemResult:
         folder = Path(payload["folder"])
         (staging / item_id).mkdir()
         try:
             convert_sample(folder, staging / item_id, item_id, payload["row"], registry=self.registry,
-                           dataset=self.job["dataset"], digest=payload["digest"])
+                           dataset=self.job["dataset"], digest=facts["digest"])
         except EXAMPLE_ERRORS:
             raise
         except (ValueError, KeyError, TypeError) as exc:  # a malformed published file we did not foresee
@@ -62,7 +63,7 @@ class ImportWorker(StageWorker):
         problems = B.check_bundle(staging / item_id)
         if problems:
             raise BundleError(f"{folder}: the imported bundle fails its check: {'; '.join(problems[:3])}")
-        return ItemResult(outputs=[item_id], result={"digest": payload["digest"]})
+        return ItemResult(outputs=[item_id], result={"digest": facts["digest"]})
 
 
 class ImportStage(Stage):
@@ -78,7 +79,6 @@ class ImportStage(Stage):
         self.samples = {sample_id: (folder, row) for sample_id, folder, row in samples}
         self.dataset, self.registry, self.config_dirs = dataset or {}, registry, config_dirs
         self.identity, self.replace = dataset, replace
-        self._digests: dict[str, str] = {}
 
     @property
     def root(self) -> Path:
@@ -97,10 +97,9 @@ class ImportStage(Stage):
     def items(self):
         return {sample_id: {"folder": str(folder), "row": row} for sample_id, (folder, row) in self.samples.items()}
 
-    def key(self, item_id, payload):
-        digest = self._digests.get(item_id) or source_digest(Path(payload["folder"]))
-        self._digests[item_id] = payload["digest"] = digest
-        return driver_digest("import", DIGEST_VERSION, digest, self.dataset)
+    def key(self, item_id, payload) -> Key:
+        digest = source_digest(Path(payload["folder"]))
+        return Key(driver_digest("import", DIGEST_VERSION, digest, self.dataset), {"digest": digest})
 
     def job(self):
         return {"dataset": self.dataset, "config_dirs": [str(d) for d in self.config_dirs]}
@@ -112,7 +111,7 @@ class ImportStage(Stage):
         return (self.split_dir / item_id).is_dir() and not B.check_bundle(self.split_dir / item_id, check_video=False)
 
     def adopt(self, item_id, payload, key):
-        digest = self._digests[item_id]
+        digest = key.facts["digest"]
         return {"digest": digest} if _is_current(self.split_dir / item_id, digest) else None
 
 

@@ -54,7 +54,7 @@ from typing import Any
 from ..atomic import atomic_file
 from ..benchmark import NEGATIVE_PROMPT, full_prompt
 from ..context import RunContext
-from ..driver import (ItemResult, RunOptions, Selection, Stage, StageReport, StageWorker, plan, read_ledger,
+from ..driver import (ItemResult, RunOptions, Stage, StageReport, StageWorker, plan_only, read_ledger,
                       run_stage, stage_dir)
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..evaluation.provenance import versions
@@ -118,7 +118,7 @@ def input_digest(bundle: Path) -> str:
 
 
 class PredictStage(Stage):
-    """The predict stage as the driver sees it: the selected reference bundles of ``split_dir`` (``ids``),
+    """The predict stage as the driver sees it: the reference bundles of ``split_dir`` (the driver selects),
     written into the predictions folder ``out_dir`` by ``info``'s predictor with ``settings``.
 
     ``source``: the predictor the run's header, preflight and lost-record recovery come from; ``instance``:
@@ -127,10 +127,10 @@ class PredictStage(Stage):
     name = STAGE
     worker = WORKER
 
-    def __init__(self, out_dir: Path, split_dir: Path, ids: list[str], info: PredictorInfo, settings: dict,
+    def __init__(self, out_dir: Path, split_dir: Path, info: PredictorInfo, settings: dict,
                  ctx: PredictContext, source: Predictor | None = None, instance: "PredictWorker | None" = None,
                  stopper: "_GracefulStop | None" = None):
-        self.out_dir, self.split_dir, self.ids = Path(out_dir), Path(split_dir), list(ids)
+        self.out_dir, self.split_dir = Path(out_dir), Path(split_dir)
         self.info, self.settings, self.ctx = info, settings, ctx
         self.source, self.instance, self.stopper = source, instance, stopper
         self.resources = predict_resources(info, ctx)
@@ -149,7 +149,13 @@ class PredictStage(Stage):
         return str(self.split_dir)
 
     def items(self) -> dict[str, dict]:
-        return {sample_id: {"bundle": str(self.split_dir / sample_id)} for sample_id in self.ids}
+        return {bundle.name: {"bundle": str(bundle)} for bundle in bundle_dirs(self.split_dir)}
+
+    def check(self, selected: list[str]) -> None:
+        """A predictor that re-simulates the scene refuses imported bundles (they hold no scene to simulate)."""
+        if self.info.needs_blender:
+            refuse_imported([self.split_dir / i for i in selected],
+                            f"predictor '{self.info.name}' re-simulates the scene")
 
     def key(self, item_id: str, payload: Any) -> str:
         """The predictor's settings, the example's own seed (None for a predictor that takes none) and a hash
@@ -290,9 +296,6 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
     executor = run.executor or LocalExecutor()
     local = executor.in_process
     info = predictor.info if predictor is not None else predictor_info(name)
-    selected = run.selection.apply([r.name for r in bundle_dirs(split_dir)], str(split_dir))
-    if info.needs_blender:
-        refuse_imported([split_dir / i for i in selected], f"predictor '{info.name}' re-simulates the scene")
     if predictor is None and (local or dry_run):
         predictor = info.create()
     source = predictor or info.create()  # settings and provenance come from the driver's instance
@@ -302,13 +305,13 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
         if settings.get("seed") is not None:  # a seeded predictor: ctx.seed is the base of per-example seeds
             settings["seeds"] = SEED_RULE
         if dry_run:
-            return _dry_run(PredictStage(out_dir, split_dir, selected, info, settings, ctx), predictor, ctx)
-        stage = PredictStage(out_dir, split_dir, selected, info, settings, ctx, source)
+            return _dry_run(PredictStage(out_dir, split_dir, info, settings, ctx), run, predictor, ctx)
+        stage = PredictStage(out_dir, split_dir, info, settings, ctx, source)
         if local:
             executor = LocalExecutor(threads=max(executor.threads, int(predictor.concurrency(ctx))))
             worker = stage.instance = PredictWorker(stage.job(), predictor=predictor, ctx=ctx)
         stopper = stage.stopper = _GracefulStop(worker) if local and info.kind == Kind.HOSTED else None
-        report = run_stage(stage, replace(run, selection=Selection(), executor=executor),
+        report = run_stage(stage, replace(run, executor=executor),
                            on_result=stage.record_result)
         if stopper is not None and stopper.signal_name:
             log.warning("stopped by %s: %d example(s) finished and recorded, %d failed, %d not done; predictions "
@@ -326,12 +329,10 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
             source.close()
 
 
-def _dry_run(stage: PredictStage, predictor: Predictor, ctx: PredictContext) -> PredictSummary:
-    """Print the request of every example that a real run would generate (the driver's plan, the same rule
-    as a run); send and write nothing."""
-    items = stage.items()
-    report = StageReport(stage.name, stage.root, selected=list(items))
-    todo = plan(stage, list(items), items, report, write=False)
+def _dry_run(stage: PredictStage, run: RunOptions, predictor: Predictor, ctx: PredictContext) -> PredictSummary:
+    """Print the request of every example that a real run would generate (the driver's ``plan_only``: the
+    same selection, check and plan as a run); send and write nothing."""
+    report, todo = plan_only(stage, run)
     summary = PredictSummary(skipped=list(report.reused), failed=dict(report.failed), redone=dict(report.redone))
     for task in todo:
         sample_id = task["id"]

@@ -51,17 +51,18 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_file
-from ..driver import ItemResult, Selection, Stage, StageWorker, run_stage
+from ..driver import ItemResult, RunOptions, Selection, Stage, StageWorker, run_stage
 from ..errors import UserError
 from ..hashing import digest
+from ..jsonio import write_json
 from ..perception.device import resolve_device
 from ..probe import model as wan
 from ..probe.inlp import MAX_ITER, MIN_R2, PROCEDURES, RIDGE
 from ..probe.recipe import Conditioning, conditioning_with, recipe, recipe_label
-from ..probe.store import ActivationStore, atomic_json
+from ..probe.store import ActivationStore
 from ..stats.bootstrap import bootstrap_ci
 from ..train.cache import LatentCache
-from .probe_bases import BasesStage, bases_path, cell_id, load_bases, rounds_of
+from .probe_bases import bases_path, cell_id, fit_cells, load_bases
 
 log = logging.getLogger(__name__)
 
@@ -188,13 +189,14 @@ class InterveneWorker(StageWorker):
         self.transformer = None
 
 
-def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, blocks=None,
-                  n_resamples: int = 20000, device: str | None = None, progress: bool = True,
+def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, run: RunOptions = RunOptions(Selection(limit=100)),
+                  blocks=None, n_resamples: int = 20000, device: str | None = None,
                   dtype=None, full_readout: str = "resume", inlp_dtype=torch.float64,
                   clip_split: str = "all", recipe: str | None = None, overrides: dict | None = None,
                   inlp_procedure: str | None = None) -> dict:
     """The bases of every block x tau cell (stage ``probe-bases``), then the loss changes on the first
-    ``clips`` clips (stage ``probe-intervene``), then the bootstrap tables over the clips done.
+    ``run.selection.limit`` clips (stage ``probe-intervene``; the command's ``--clips``), then the bootstrap
+    tables over the clips done.
     Conditioning and INLP procedure: those of ``recipe`` (default: the recipe the store was extracted with,
     and the store's own conditioning), with ``overrides`` of its choices (``dtype``, when given, is the
     forward precision) and ``inlp_procedure`` instead of the recipe's."""
@@ -216,42 +218,23 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, clips: int = 100, 
     inlp_dtype = str(inlp_dtype).replace("torch.", "")
     start = time.perf_counter()
 
-    # 1. bases per cell (on the full activation corpus)
-    cells = [(b, tau) for b in blocks for tau in taus]
-    fitted = run_stage(BasesStage(store, out, cells, str(inlp_dev), inlp_dtype, procedure), Selection(),
-                       progress=progress)
-    if fitted.failed:
-        raise UserError(f"{acts}: the bases of {len(fitted.failed)} cell(s) could not be fitted ("
-                        + "; ".join(f"{k}: {v}" for k, v in list(fitted.failed.items())[:3]) + ")")
-    facts = []
-    for b, tau in cells:
-        info = {k: v for k, v in fitted.results[cell_id(b, tau)].items() if k not in ("key", "digest")}
-        facts.append({"block": b, "tau": tau, **info})
-    with (out / "bases.csv").open("w", newline="") as fh:
-        cols = ["block", "tau", "procedure", "rank", "rounds", "rounds_x3", "iterations", "stopped", "k_pc",
-                "alpha_pc", "removed_variance", "top_k_variance", "random_removed_variance", "total_variance",
-                "final_train_r2", "first_heldout_r2", "last_heldout_r2", "train_rows", "heldout_rows", "inlp_seconds",
-                "inlp_device", "inlp_dtype"]
-        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
-        w.writeheader()
-        for f in facts:
-            w.writerow({**f, "procedure": f.get("procedure", "stable"), "rounds": rounds_of(f),
-                        "rounds_x3": 3 * rounds_of(f), "final_train_r2": f["train_r2"][-1] if f["train_r2"] else "",
-                        "first_heldout_r2": f["heldout_r2"][0] if f["heldout_r2"] else "",
-                        "last_heldout_r2": f["heldout_r2"][-1] if f["heldout_r2"] else ""})
-
-    # 2. the loss changes on the first ``clips`` clips of the store (all, or its training split)
+    # the candidate clips: the store's (all, or its training split) that are in the cache; an unknown id fails now
     cache = LatentCache(cache_dir)
     present = set(store.rows["clip"])
     pool = sorted(i for i, s in man["splits"].items() if i in present and (clip_split == "all" or s == "train"))
     candidates = [i for i in pool if i in cache.manifest["examples"]]
-    if not candidates[:clips]:
+    run.selection.apply(candidates, f"{acts} (clips also in {cache_dir})")
+    if not candidates[:run.selection.limit]:
         raise UserError(f"{acts}: no {'training-split ' if clip_split == 'train' else ''}clips of the store are in "
                         f"the cache {cache_dir}")
+
+    # 1. bases per cell (on the full activation corpus); 2. the loss changes on the selected clips
+    cells = [(b, tau) for b in blocks for tau in taus]
+    fitted, facts = fit_cells(store, out, cells, str(inlp_dev), inlp_dtype, procedure, progress=run.progress)
     stage = InterveneStage(store, cache, out, candidates, taus=taus, blocks=blocks, full_readout=full_readout,
                            device=str(resolve_device(device)), conditioning=cond,
                            bases={cell_id(b, tau): fitted.results[cell_id(b, tau)]["digest"] for b, tau in cells})
-    report = run_stage(stage, Selection.of(limit=clips), progress=progress)
+    report = run_stage(stage, run)
     done = report.succeeded
     if not done:
         raise UserError(f"{out}: no clip could be intervened on ("
@@ -337,5 +320,5 @@ def summarize(effects: list[dict], facts: list[dict], out: Path, n_resamples: in
         w.writerows(by_cell)
     result = {**meta, "n_resamples": n_resamples, "summary": summary,
               "bases": [{k: v for k, v in f.items()} for f in facts]}
-    atomic_json(out / "intervene.json", result)
+    write_json(out / "intervene.json", result, sort_keys=True)
     return result

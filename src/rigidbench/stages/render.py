@@ -32,7 +32,7 @@ from typing import Any, Callable, Sequence
 from ..blender.render import render_spec
 from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, plain, registry as load_registry
-from ..driver import ItemResult, Progress, Redo, RunOptions, Stage, StageReport, StageWorker, Why, plan, run_stage
+from ..driver import ItemResult, Progress, Redo, RunOptions, Stage, StageReport, StageWorker, Why, plan_only, run_stage
 from ..errors import EXAMPLE_ERRORS, SpecError, UserError
 from ..executors import ProcessExecutor, Resources
 from ..extras import missing
@@ -273,10 +273,7 @@ def rows_to_render(rows: Sequence[ManifestRow], data_dir: Path, preset: str,
     todo: list[ManifestRow] = []
     for split, group in _by_split(rows).items():
         stage = RenderStage(data_dir, split, group, registry, preset)
-        items = stage.items()
-        ids = list(items)
-        stage.check(ids)
-        tasks = plan(stage, ids, items, StageReport(stage.name, stage.root, selected=ids), write=False)
+        _, tasks = plan_only(stage)
         todo += [stage.rows[t["id"]] for t in tasks]
     return todo
 
