@@ -519,7 +519,9 @@ class StageReport:
     (skipped); ``failed``: id -> reason; ``redone``: id -> why an earlier output was not reused;
     ``results``: id -> the worker's result (ran and reused); ``interrupted``: ids stopped before they ran;
     ``elsewhere``: ids another process was working on (their lock was held), not done here; ``keys``: id ->
-    the key this run computed (``plan``; a ``Key`` with its facts when the stage returns one)."""
+    the key this run computed (``plan``; a ``Key`` with its facts when the stage returns one); ``facts``: the
+    stage's own results (a small dataclass its facade sets, e.g. evaluate's results.json), which its command
+    prints after the common ``lines``."""
 
     stage: str
     root: Path
@@ -535,6 +537,7 @@ class StageReport:
     keys: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     completed: bool = False  # every selected example was attempted (not stopped by an interrupt or a bug)
+    facts: Any = None  # stage-specific results (the stage's facade sets them; its command prints them)
 
     @property
     def succeeded(self) -> list[str]:

@@ -207,7 +207,7 @@ def test_a_one_frame_clip_is_refused_and_scored_marked_with_allow_short(copies, 
     run = tmp_path / "run"
     summary = evaluate(preds, data, run, run=RunOptions(progress=False))
     results = results_of(run)
-    assert sorted(summary.evaluated) == ["00000", "00002"] and set(summary.failed) == {DAMAGED}
+    assert sorted(summary.ran) == ["00000", "00002"] and set(summary.failed) == {DAMAGED}
     message = results["failed"][DAMAGED]
     assert f"{DAMAGED}.mp4" in message and "0.000 s" in message and "0 to 0.500 s" in message
     assert "--allow-short" in message
@@ -216,8 +216,8 @@ def test_a_one_frame_clip_is_refused_and_scored_marked_with_allow_short(copies, 
     summary = evaluate(preds, data, run, allow_short=True, run=RunOptions(progress=False))
     results = results_of(run)
     # --allow-short is one of the rules in every example's key: all are scored again under it
-    assert not summary.failed and summary.evaluated == list(IDS) and not summary.reused
-    assert summary.stage.redone == {i: "its inputs or settings changed" for i in IDS}
+    assert not summary.failed and summary.ran == list(IDS) and not summary.reused
+    assert summary.redone == {i: "its inputs or settings changed" for i in IDS}
     record = json.loads((run / "examples" / f"{DAMAGED}.json").read_text())
     assert record["coverage"]["short"] is True and record["coverage"]["fraction"] == 0.0
     assert record["coverage"]["frames"] == 1 and record["frames_compared"] == 1
@@ -257,7 +257,7 @@ def test_a_fifo_and_a_link_to_dev_zero_fail_fast(copies, tmp_path):
     (preds / "00002.mp4").unlink()
     (preds / "00002.mp4").symlink_to("/dev/zero")
     summary = evaluate(preds, data, tmp_path / "run", run=RunOptions(progress=False))
-    assert summary.evaluated == ["00000"]
+    assert summary.ran == ["00000"]
     assert "FIFO" in summary.failed[DAMAGED] and f"{DAMAGED}.mp4" in summary.failed[DAMAGED]
     assert "character device" in summary.failed["00002"] and "/dev/zero" in summary.failed["00002"]
     assert results_of(tmp_path / "run")["failed"] == summary.failed
@@ -271,7 +271,7 @@ def test_a_link_to_a_regular_file_is_read(copies, tmp_path):
     shutil.move(preds / "00000.mp4", target)
     (preds / "00000.mp4").symlink_to(target)
     summary = evaluate(preds, data, tmp_path / "run", run=RunOptions(Selection.of(["00000"]), progress=False))
-    assert summary.evaluated == ["00000"] and not summary.failed
+    assert summary.ran == ["00000"] and not summary.failed
 
 
 def test_the_size_cap_is_checked_before_reading(tmp_path, monkeypatch):
@@ -300,7 +300,7 @@ def test_a_vfr_clip_a_fraction_of_a_millisecond_short_is_compared_whole(copies, 
     report = validate_predictions(preds, data / "eval")
     assert report.ok, [i.message for i in report.errors]
     summary = evaluate(preds, data, tmp_path / "run", run=RunOptions(Selection.of(["00000"]), progress=False))
-    assert summary.evaluated == ["00000"]
+    assert summary.ran == ["00000"]
     record = json.loads((tmp_path / "run" / "examples" / "00000.json").read_text())
     assert record["frames_compared"] == 13 and record["coverage"]["frames"] == 13
     assert record["coverage"]["short"] is False and record["coverage"]["fraction"] == 1.0
@@ -312,7 +312,7 @@ def test_a_vfr_clip_a_fraction_of_a_millisecond_short_is_compared_whole(copies, 
 def test_render_timings_do_not_invalidate_cached_scores(copies, tmp_path):
     data, preds = copies
     run = tmp_path / "run"
-    assert sorted(evaluate(preds, data, run, run=RunOptions(progress=False)).evaluated) == list(IDS)
+    assert sorted(evaluate(preds, data, run, run=RunOptions(progress=False)).ran) == list(IDS)
     for sample_id, seconds in (("00000", 12.5), ("00002", 99.0)):
         meta_path = data / "eval" / sample_id / "metadata.json"
         meta = json.loads(meta_path.read_text())
@@ -324,7 +324,7 @@ def test_render_timings_do_not_invalidate_cached_scores(copies, tmp_path):
     meta["partition"] = "ood_objects"  # this one moves the results: scored again
     meta_path.write_text(json.dumps(meta))
     summary = evaluate(preds, data, run, run=RunOptions(progress=False))
-    assert sorted(summary.reused) == ["00000", "00002"] and summary.evaluated == [DAMAGED]
+    assert sorted(summary.reused) == ["00000", "00002"] and summary.ran == [DAMAGED]
 
 
 # -- item 10: scratch files of re-rendering predictors live in the output folder ------------------------------

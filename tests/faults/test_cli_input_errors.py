@@ -84,11 +84,11 @@ def test_a_damaged_score_record_is_scored_again(data, tmp_path, damage):
     preds = tmp_path / "preds"
     assert main(["predict", "reference", "--data", str(data), "--out", str(preds)]) == 0
     first = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), run=RunOptions(progress=False))
-    assert first.evaluated == ["00000"]
+    assert first.ran == ["00000"]
     (tmp_path / "run" / "examples" / "00000.json").write_bytes(damage)
     second = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), run=RunOptions(progress=False))
-    assert second.evaluated == ["00000"] and not second.failed
-    assert second.results["overall"]["iou"]["mean"] == first.results["overall"]["iou"]["mean"]
+    assert second.ran == ["00000"] and not second.failed
+    assert second.facts.results["overall"]["iou"]["mean"] == first.facts.results["overall"]["iou"]["mean"]
 
 
 def test_a_score_made_without_the_first_frame_check_is_not_reused_with_it(data, tmp_path):
@@ -104,11 +104,11 @@ def test_a_score_made_without_the_first_frame_check_is_not_reused_with_it(data, 
     preds = tmp_path / "preds"
     assert main(["predict", "reference", "--data", str(other / "data"), "--out", str(preds)]) == 0
     loose = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), first_frame_check=False, run=RunOptions(progress=False))
-    assert loose.evaluated == ["00000"] and not loose.failed
+    assert loose.ran == ["00000"] and not loose.failed
     strict = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), run=RunOptions(progress=False))
     assert not strict.reused and "first frame does not match" in strict.failed["00000"]
     again = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), first_frame_check=False, run=RunOptions(progress=False))
-    assert again.evaluated == ["00000"] and not again.reused and not again.failed
+    assert again.ran == ["00000"] and not again.reused and not again.failed
 
 
 # -- every command, each kind of bad argument (issue 33) --------------------------------------------------

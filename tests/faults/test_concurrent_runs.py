@@ -182,7 +182,7 @@ def reference_set(tmp_path_factory):
     root = tmp_path_factory.mktemp("concurrent")
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
     assert import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False)).ran == IDS
-    assert predict("reference", root / "data" / "eval", root / "reference", PredictContext(), run=RunOptions(progress=False)).written \
+    assert predict("reference", root / "data" / "eval", root / "reference", PredictContext(), run=RunOptions(progress=False)).succeeded \
         == IDS
     return root / "data", root / "reference"
 
@@ -202,7 +202,7 @@ def slowed(sample, *args, **kwargs):
     return real(sample, *args, **kwargs)
 runner._score_one = slowed
 summary = evaluate(preds, data, out, nets=FeatureNets(), run=RunOptions(progress=False))
-print(len(summary.evaluated), len(summary.reused), len(summary.failed), len(summary.elsewhere))
+print(len(summary.ran), len(summary.reused), len(summary.failed), len(summary.elsewhere))
 """
 
 
@@ -223,7 +223,7 @@ def test_two_evaluates_on_one_folder_write_a_single_runs_results(reference_set, 
     single = evaluate(preds, data, tmp_path / "single", nets=FeatureNets(), run=RunOptions(progress=False))
     assert (out / "results.json").read_text() == (tmp_path / "single" / "results.json").read_text()
     results = json.loads((out / "results.json").read_text())
-    assert results["n_examples"] == 3 and results["failed"] == {} and single.results == results
+    assert results["n_examples"] == 3 and results["failed"] == {} and single.facts.results == results
     for sample_id in IDS:
         assert json.loads((out / "examples" / f"{sample_id}.json").read_text()) == \
                json.loads((tmp_path / "single" / "examples" / f"{sample_id}.json").read_text())

@@ -138,7 +138,7 @@ def made(tmp_path_factory):
     assert summary.ran == list(IDS) and not summary.failed
     assert main(["predict", "reference", "--data", str(root / "data"), "--out", str(root / "preds")]) == 0
     first = evaluate(root / "preds", root / "data", root / "run", nets=FeatureNets(), run=RunOptions(progress=False))
-    assert first.evaluated == list(IDS) and not first.failed
+    assert first.ran == list(IDS) and not first.failed
     return root / "data", root / "preds", root / "run"
 
 
@@ -264,8 +264,8 @@ def test_a_bundle_file_of_the_wrong_length_fails_only_its_example_in_evaluate_an
     before = {i: (run / "examples" / f"{i}.json").stat().st_mtime_ns for i in ("00000", "00002")}
     restore(path, made[0] / "eval" / DAMAGED / name)
     again = rescore(preds, data, run)
-    assert again.evaluated == [DAMAGED] and again.reused == ["00000", "00002"] and not again.failed
-    assert again.results["n_examples"] == 3 and not again.results["failed"]
+    assert again.ran == [DAMAGED] and again.reused == ["00000", "00002"] and not again.failed
+    assert again.facts.results["n_examples"] == 3 and not again.facts.results["failed"]
     assert {i: (run / "examples" / f"{i}.json").stat().st_mtime_ns for i in ("00000", "00002")} == before
 
 
@@ -297,7 +297,7 @@ def test_a_paid_dry_run_lists_every_other_request_past_a_damaged_first_frame(cop
     assert main(["predict", "veo-3.1", "--dry-run", "--data", str(data), "--out", str(tmp_path / "veo")]) == 0
     out, _ = no_traceback(capsys)
     assert [line[:5] for line in out.splitlines() if line[:5] in IDS] == ["00000", "00002"]
-    assert "would generate 2 videos" in out and "2 paid API calls" in out
+    assert "predict: would make 2, 0 up to date, 1 failed of 3 example(s)" in out and "2 paid API calls" in out
     assert f"example {DAMAGED} failed" in caplog.text and "frames/00000.png" in caplog.text
 
 
@@ -353,8 +353,8 @@ def test_a_damaged_example_file_is_left_out_with_a_count_then_scored_again(copie
 
     # evaluate again: exactly the damaged example is scored again, and the file is whole
     again = rescore(preds, data, run)
-    assert again.evaluated == [DAMAGED] and again.reused == ["00000", "00002"]
-    assert again.stage.redone == {DAMAGED: RESCORED}
+    assert again.ran == [DAMAGED] and again.reused == ["00000", "00002"]
+    assert again.redone == {DAMAGED: RESCORED}
     assert isinstance(json.loads(path.read_text()), dict)
     assert main(["readouts", str(run), "--examples"]) == 0
     out, _ = no_traceback(capsys)
@@ -368,7 +368,7 @@ def test_a_missing_or_replaced_arrays_file_is_scored_again(copies, kind):
     path = run / "examples" / f"{DAMAGED}.npz"
     damage(path, kind)
     again = rescore(preds, data, run)
-    assert again.evaluated == [DAMAGED] and again.stage.redone == {DAMAGED: RESCORED}
+    assert again.ran == [DAMAGED] and again.redone == {DAMAGED: RESCORED}
     with np.load(path) as z:
         assert "ssim" in z.files and z["ssim"].shape == (T,)
 
@@ -388,7 +388,7 @@ def test_a_damaged_results_file_is_one_line_and_exit_2_and_evaluate_writes_it_ag
     if kind == "directory":  # as the message says
         shutil.rmtree(path)
     again = rescore(preds, data, run)
-    assert again.reused == list(IDS) and not again.evaluated  # nothing scored again
+    assert again.reused == list(IDS) and not again.ran  # nothing scored again
     assert path.read_text() == intact
     assert main(["readouts", str(run)]) == 0
 

@@ -136,7 +136,7 @@ def test_a_kill_while_the_creation_is_in_flight_is_adopted_not_paid_again(server
         server.created.append(f"other{i}")
     server.page_size = 2
     summary = run(split, out, config, concurrency=1)
-    assert summary.written == ["00000", "00001"] and not summary.failed
+    assert summary.succeeded == ["00000", "00001"] and not summary.failed
     assert server.paid("number 0 ") == [paid] and len(server.paid("number 1 ")) == 1
     entry = examples(out)["00000"]
     assert entry["prediction_id"] == paid and entry["adopted"] is True
@@ -151,7 +151,7 @@ def test_a_kill_after_the_answer_before_the_id_is_saved_is_adopted(server, tmp_p
     assert code == -signal.SIGKILL and len(server.created) == 1
     assert "prediction_id" not in state(out, "00000")
     summary = run(split, out, config)
-    assert summary.written == ["00000", "00001"] and not summary.failed
+    assert summary.succeeded == ["00000", "00001"] and not summary.failed
     assert_complete(out, server, ["00000", "00001"])
     assert examples(out)["00000"]["adopted"] is True
 
@@ -199,7 +199,7 @@ def test_a_kill_mid_download_resumes_by_id_and_cleans_the_partial_download(serve
     (out / ".hosted" / ".00000.json.stale.tmp").write_text("{")  # a state write the kill cut short
     (out / ".00000.partial.mp4").write_bytes(b"x")  # and a video that was being moved into place
     summary = run(split, out, config)
-    assert summary.written == ["00000"] and not summary.failed
+    assert summary.succeeded == ["00000"] and not summary.failed
     assert_complete(out, server, ["00000"])
     assert examples(out)["00000"]["resumed"] is True
     leftovers = [p.name for p in [*out.iterdir(), *(out / ".hosted").iterdir()] if p.name.startswith(".0")]
@@ -270,7 +270,7 @@ def test_a_signal_records_what_was_paid_for_and_creates_nothing_more(server, tmp
     assert not set(records) - set(paid)  # examples never started have no record
     server.never_finish = False
     summary = run(split, out, config, concurrency=3)
-    assert sorted(summary.written) == ids and not summary.failed
+    assert sorted(summary.succeeded) == ids and not summary.failed
     assert_complete(out, server, ids)
     for sample_id, pid in paid.items():
         assert examples(out)[sample_id]["prediction_id"] == pid
@@ -298,11 +298,11 @@ def test_sigterm_while_the_creation_is_held_forever_stops_within_seconds_and_the
     (paid,) = server.created
     server.hold_answers.clear()
     summary = run(split, out, config)
-    assert summary.written == ["00000"] and not summary.failed
+    assert summary.succeeded == ["00000"] and not summary.failed
     assert server.created == [paid] and examples(out)["00000"]["adopted"] is True
 
 
-SUMMARY = re.compile(r"veo-3\.1: (\d+) predictions in \S+ \((\d+) already there\), (\d+) failed"
+SUMMARY = re.compile(r"predict: (\d+) made, (\d+) up to date, (\d+) failed(?:, \d+ not started)?"
                      r"(?:, (\d+) being made by another process)?")
 
 
@@ -320,10 +320,10 @@ def test_two_runs_on_one_folder_started_together_pay_once_for_each_example(serve
     for proc in procs:
         code, stdout, stderr = finish(proc, timeout=60)
         assert code == 0 and "Traceback" not in stderr and "Errno" not in stderr + stdout, stderr
-        written, already, failed, elsewhere = (int(n or 0) for n in SUMMARY.search(stdout).groups())
-        assert failed == 0 and written + elsewhere == 3, stdout
+        now, already, failed, elsewhere = (int(n or 0) for n in SUMMARY.search(stdout).groups())
+        assert failed == 0 and now + already + elsewhere == 3, stdout
         assert elsewhere == 0 if wait else (elsewhere > 0) == ("by another process" in stderr), stdout + stderr
-        made += written - already
+        made += now
     assert made == 3  # each example made by exactly one of the two
     assert_complete(out, server, ids)  # one creation per example, every one recorded
     assert not list((out / ".stages" / "predict").glob("staging/*"))
@@ -343,7 +343,7 @@ def test_examples_finishing_out_of_order_keep_their_records_through_a_kill(serve
         assert (out / f"{sample_id}.mp4").is_file()
     server.hold_answers.clear()
     summary = run(split, out, config)
-    assert summary.skipped == ["00001", "00002"] and summary.written == ["00000", "00001", "00002"]
+    assert summary.reused == ["00001", "00002"] and summary.succeeded == ["00000", "00001", "00002"]
     assert_complete(out, server, ["00000", "00001", "00002"])
 
 
@@ -357,7 +357,7 @@ def test_a_finished_video_without_a_record_gets_it_back_from_the_hosted_state(se
     del doc["examples"]["00001"]
     (out / GENERATION_FILE).write_text(json.dumps(doc))
     summary = run(split, out, config)
-    assert summary.skipped == ["00000", "00001"]
+    assert summary.reused == ["00000", "00001"]
     entry = examples(out)["00001"]
     assert entry["prediction_id"] == pid and entry["status"] == "succeeded" and "recovered" in entry
     assert entry["prompt"].startswith("A red apple number 1") and entry["version"] == "hidden"

@@ -66,7 +66,7 @@ def test_preprocess_writes_a_resumable_float16_cache(cache, train_split, capsys)
     assert c.latent(c.ids[0]).dtype == torch.float16 and c.text(c.ids[0]).dtype == torch.float16
     assert main(["preprocess", "--data", str(train_split.parent), "--out", str(cache), "--model", "tiny",
                  "--no-progress"]) == 0
-    assert "0 clips and 0 prompts encoded" in capsys.readouterr().out
+    assert "0 made, 2 up to date, 0 failed of 2 clip(s)" in capsys.readouterr().out
     again = json.loads((cache / "manifest.json").read_text())
     assert again["examples"] == manifest["examples"] and again["prompts"] == manifest["prompts"]
 

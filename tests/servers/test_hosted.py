@@ -117,7 +117,7 @@ def test_request_body_matches_the_paper_table(name, server, config, tmp_path):
     split = make_split(tmp_path / "eval", 1)
     out = tmp_path / "out"
     summary = run(name, split, out, config)
-    assert summary.written == ["00000"] and not summary.failed
+    assert summary.succeeded == ["00000"] and not summary.failed
     (create,) = server.creations()
     assert create.path == f"/v1/models/{slug}/predictions"
     assert create.headers["prefer"] == "wait" and create.headers["authorization"] == f"Bearer {TOKEN}"
@@ -208,7 +208,7 @@ def test_the_token_reaches_no_file_log_or_error(server, config, tmp_path, caplog
     server.failures["FAILME"] = "E001: the model failed"
     server.script("POST", "/v1/models/", 500, times=1)
     good = run("veo-3.1", split, tmp_path / "good", config)
-    assert sorted(good.written) == ["00000", "00002"] and "E001" in good.failed["00001"]
+    assert sorted(good.succeeded) == ["00000", "00002"] and "E001" in good.failed["00001"]
     # Every download went out without the token (delivery URLs may live on another host).
     downloads = server.requests_to("/output/")
     assert downloads and all("authorization" not in r.headers for r in downloads)
@@ -263,7 +263,7 @@ def test_rate_limits_and_server_errors_are_retried_and_counted(server, config, t
     started = time.monotonic()
     summary = run("seedance-2.0", make_split(tmp_path / "eval", 1), tmp_path / "out", config)
     elapsed = time.monotonic() - started
-    assert summary.written == ["00000"] and not summary.failed
+    assert summary.succeeded == ["00000"] and not summary.failed
     assert len(server.creations()) == 4 and len(server.predictions) == 1  # three refusals, one paid prediction
     assert elapsed >= 1.0  # Retry-After was waited; backoff alone is at most 0.05 s here
     entry = generation(tmp_path / "out")["examples"]["00000"]
@@ -274,7 +274,7 @@ def test_rate_limits_and_server_errors_are_retried_and_counted(server, config, t
 def test_server_errors_past_the_retries_fail_the_example_with_the_api_message(server, config, tmp_path):
     server.script("POST", "/v1/models/", 500, detail="model backend unavailable", times=4)  # max_retries 3 + 1
     summary = run("veo-3.1-fast", make_split(tmp_path / "eval", 3), tmp_path / "out", config, concurrency=1)
-    assert list(summary.failed) == ["00000"] and sorted(summary.written) == ["00001", "00002"]
+    assert list(summary.failed) == ["00000"] and sorted(summary.succeeded) == ["00001", "00002"]
     assert "HTTP 500 after 4 attempts" in summary.failed["00000"]
     assert "model backend unavailable" in summary.failed["00000"]
     assert generation(tmp_path / "out")["examples"]["00000"]["status"] == "failed"
@@ -286,13 +286,13 @@ def test_a_failed_prediction_is_recorded_the_others_go_on_and_a_rerun_retries_it
     split = make_split(tmp_path / "eval", 3)
     out = tmp_path / "out"
     summary = run("kling-3.0", split, out, config, concurrency=3)
-    assert sorted(summary.written) == ["00000", "00002"]
+    assert sorted(summary.succeeded) == ["00000", "00002"]
     assert "E005: the input was flagged as sensitive" in summary.failed["00001"]
     entry = generation(out)["examples"]["00001"]
     assert entry["status"] == "failed" and "E005" in entry["error"] and "stand" in entry["error"]  # the id
     del server.failures["number 1"]
     again = run("kling-3.0", split, out, config, concurrency=3)
-    assert again.skipped == ["00000", "00002"] and not again.failed
+    assert again.reused == ["00000", "00002"] and not again.failed
     assert len(server.creations("number 1")) == 2 and len(server.creations()) == 4
     doc = generation(out)
     assert doc["examples"]["00001"]["status"] == "succeeded"
@@ -306,7 +306,7 @@ def test_oversized_and_non_video_outputs_are_refused(server, config, tmp_path, k
     server.oversize_bytes = 300_000  # the test cap is 200,000 bytes
     out = tmp_path / "out"
     summary = run("veo-3.1", make_split(tmp_path / "eval", 2), out, config)
-    assert summary.written == ["00001"] and message in summary.failed["00000"]
+    assert summary.succeeded == ["00001"] and message in summary.failed["00000"]
     assert not (out / "00000.mp4").exists()
     assert not [p for p in (out / ".hosted").iterdir() if p.suffix != ".json"]  # no partial download left
 
@@ -329,7 +329,7 @@ def test_a_run_killed_after_creation_resumes_without_a_second_creation(server, c
     stored = json.loads((out / ".hosted" / "00000.json").read_text())
     assert stored["prediction_id"] in server.predictions and TOKEN not in json.dumps(stored)
     summary = run("veo-3.1", split, out, config, concurrency=1)
-    assert summary.written == ["00000", "00001"] and not summary.failed
+    assert summary.succeeded == ["00000", "00001"] and not summary.failed
     assert len(server.creations("number 0")) == 1 and len(server.creations()) == 2
     assert server.requests_to(f"/v1/predictions/{stored['prediction_id']}", "GET")
     entry = generation(out)["examples"]["00000"]
@@ -342,7 +342,7 @@ def test_an_interrupted_download_is_fetched_again_by_prediction_id(server, confi
     summary = run("seedance-2.0-fast", split, out, config)
     assert "network error after 4 attempts" in summary.failed["00000"]
     again = run("seedance-2.0-fast", split, out, config)
-    assert again.written == ["00000"] and not again.failed
+    assert again.succeeded == ["00000"] and not again.failed
     assert len(server.creations()) == 1  # paid once
     assert probe_video(out / "00000.mp4").n_frames == 12
 
@@ -355,7 +355,7 @@ def test_a_prediction_past_the_timeout_is_kept_and_waited_for_on_rerun(server, t
     assert "per-example timeout" in summary.failed["00000"] and "resumes it without paying again" in summary.failed["00000"]
     server.never_finish = False
     again = run("veo-3.1", split, out, config)
-    assert again.written == ["00000"] and len(server.creations()) == 1
+    assert again.succeeded == ["00000"] and len(server.creations()) == 1
 
 
 def test_a_stop_cuts_a_hung_download_after_its_grace_and_ends_a_pause_at_once(server, tmp_path):
@@ -402,7 +402,7 @@ def test_dry_run_sends_nothing_and_counts_the_paid_calls(server, config, tmp_pat
     monkeypatch.delenv("REPLICATE_API_TOKEN")  # not needed to plan
     out = tmp_path / "out"
     summary = run("kling-3.0", make_split(tmp_path / "eval", 3), out, config, dry_run=True)
-    assert summary.paid_calls == 3 and summary.planned == ["00000", "00001", "00002"]
+    assert summary.facts.paid_calls == 3 and summary.facts.planned == ["00000", "00001", "00002"]
     assert server.requests == [] and not out.exists()
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and all("elided" in line and "base64" not in line for line in lines)
@@ -415,7 +415,7 @@ def test_dry_run_sends_nothing_and_counts_the_paid_calls(server, config, tmp_pat
 def test_concurrency_is_bounded(server, config, tmp_path):
     server.create_delay_s = 0.15  # a slow model: each creation holds its connection
     summary = run("veo-3.1", make_split(tmp_path / "eval", 6), tmp_path / "out", config, concurrency=2)
-    assert len(summary.written) == 6
+    assert len(summary.succeeded) == 6
     assert server.max_in_flight == 2  # two at once, never more
 
 

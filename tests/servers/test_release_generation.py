@@ -206,7 +206,7 @@ def test_videos_of_the_earlier_one_seed_rule_are_not_reused(tmp_path):
     (out / "generation.json").unlink()
     shutil.rmtree(out / ".stages")  # such a folder has no ledger either: only .predictor.json says how it was made
     ctx = PredictContext(seed=0, options=MappingProxyType({"pipeline": pipe, **WAN_SIZE}))
-    assert predict("wan-2.2", split, out, ctx, run=RunOptions(progress=False)).skipped == []
+    assert predict("wan-2.2", split, out, ctx, run=RunOptions(progress=False)).reused == []
 
 
 # -- 3. storage ---------------------------------------------------------------------------------------------

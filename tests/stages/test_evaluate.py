@@ -42,7 +42,7 @@ def reference_set(tmp_path_factory):
     published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
     assert import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False)).ran == IDS
     made = predict("reference", root / "data" / "eval", root / "reference", PredictContext(), run=RunOptions(progress=False))
-    assert made.written == IDS and not made.failed
+    assert made.succeeded == IDS and not made.failed
     return root / "data", root / "reference"
 
 
@@ -92,7 +92,7 @@ def test_a_rerun_scores_nothing_again(inputs, tmp_path, monkeypatch):
     data, preds = inputs
     out = tmp_path / "run"
     first = run(preds, data, out)
-    assert first.evaluated == IDS and not first.reused and not first.failed
+    assert first.ran == IDS and not first.reused and not first.failed
     for sample_id in IDS:
         entry = read_ledger(out, "evaluate", sample_id)
         record = json.loads((out / "examples" / f"{sample_id}.json").read_text())
@@ -102,7 +102,7 @@ def test_a_rerun_scores_nothing_again(inputs, tmp_path, monkeypatch):
 
     never_score(monkeypatch)
     again = run(preds, data, out)
-    assert again.reused == IDS and not again.evaluated and not again.failed and not again.stage.redone
+    assert again.reused == IDS and not again.ran and not again.failed and not again.redone
     assert stamps(out) == before  # no example file written again
     assert (out / "results.json").read_text() == results  # the same numbers, from the kept records
     info = json.loads((out / "run.json").read_text())
@@ -121,13 +121,13 @@ def test_a_replaced_video_rescores_only_its_example(inputs, tmp_path):
     write_video(preds / "00001.mp4", frames, fps=24, lossless=True)
 
     again = run(preds, data, out)
-    assert again.evaluated == ["00001"] and again.reused == ["00000", "00002"] and not again.failed
-    assert again.stage.redone == {"00001": CHANGED}
+    assert again.ran == ["00001"] and again.reused == ["00000", "00002"] and not again.failed
+    assert again.redone == {"00001": CHANGED}
     after = stamps(out)
     assert {k for k in before if after[k] != before[k]} == {f"00001{ext}" for ext in (".json", ".npz", ".readouts.json")}
     new = json.loads((out / "examples" / "00001.json").read_text())
     assert new["input_key"] != old["input_key"] and new["metrics"]["ssim"] < old["metrics"]["ssim"]
-    assert again.results["n_examples"] == 3
+    assert again.facts.results["n_examples"] == 3
 
 
 def test_another_protocol_rescores_every_example_and_says_why(inputs, tmp_path, caplog):
@@ -135,13 +135,13 @@ def test_another_protocol_rescores_every_example_and_says_why(inputs, tmp_path, 
     out = tmp_path / "run"
     first = run(preds, data, out)
     lossless = run(preds, data, out, protocol="lossless")
-    assert lossless.evaluated == IDS and not lossless.reused
-    assert lossless.stage.redone == {i: CHANGED for i in IDS}
+    assert lossless.ran == IDS and not lossless.reused
+    assert lossless.redone == {i: CHANGED for i in IDS}
     assert "3 example(s) made with other inputs or settings are made again" in caplog.text
     assert all(json.loads((out / "examples" / f"{i}.json").read_text())["protocol"] == "lossless" for i in IDS)
-    assert lossless.results["protocol"]["name"] == "lossless" and lossless.results["overall"]["ssim"]["mean"] == 1.0
+    assert lossless.facts.results["protocol"]["name"] == "lossless" and lossless.facts.results["overall"]["ssim"]["mean"] == 1.0
     back = run(preds, data, out)  # one key per example: the default protocol's scores are made again too
-    assert back.evaluated == IDS and back.results == first.results
+    assert back.ran == IDS and back.facts.results == first.facts.results
 
 
 def test_a_missing_prediction_fails_only_its_example_and_the_others_are_kept(inputs, tmp_path, monkeypatch):
@@ -165,8 +165,8 @@ def test_a_record_missing_or_from_other_inputs_is_scored_again(inputs, tmp_path)
     record = json.loads((out / "examples" / "00002.json").read_text())
     (out / "examples" / "00002.json").write_text(json.dumps({**record, "input_key": "another run's"}))
     again = run(preds, data, out)
-    assert again.evaluated == ["00000", "00002"] and again.reused == ["00001"]
-    assert again.stage.redone == {i: "its output is missing or damaged" for i in ("00000", "00002")}
+    assert again.ran == ["00000", "00002"] and again.reused == ["00001"]
+    assert again.redone == {i: "its output is missing or damaged" for i in ("00000", "00002")}
     assert json.loads((out / "examples" / "00002.json").read_text()) == record
 
 
@@ -198,11 +198,11 @@ runner.evaluate({str(preds)!r}, {str(data)!r}, {str(out)!r}, nets=FeatureNets(),
     assert not ledger_path(out, "evaluate", "00001").exists() and not (out / "results.json").exists()
 
     resumed = run(preds, data, out)
-    assert resumed.reused == ["00000"] and resumed.evaluated == ["00001", "00002"] and not resumed.failed
+    assert resumed.reused == ["00000"] and resumed.ran == ["00001", "00002"] and not resumed.failed
     assert not staging.exists()
     clean = run(preds, data, tmp_path / "clean")
     assert_same_outputs(out, tmp_path / "clean")
-    assert resumed.results == clean.results
+    assert resumed.facts.results == clean.facts.results
 
 
 def test_a_run_folder_from_before_ledgers_is_adopted_without_scoring(inputs, tmp_path, monkeypatch):
@@ -219,22 +219,22 @@ def test_a_run_folder_from_before_ledgers_is_adopted_without_scoring(inputs, tmp
 
     never_score(monkeypatch)
     adopted = run(preds, data, out, allow_short=True)
-    assert adopted.reused == IDS and not adopted.evaluated and not adopted.failed
+    assert adopted.reused == IDS and not adopted.ran and not adopted.failed
     assert stamps(out) == before
     assert all(read_ledger(out, "evaluate", i)["adopted"] is True for i in IDS)
-    assert adopted.results["coverage"]["short"] == ["00001"]
+    assert adopted.facts.results["coverage"]["short"] == ["00001"]
 
     shutil.rmtree(out / LEDGER_DIR)
     monkeypatch.undo()
     strict = run(preds, data, out)
-    assert strict.reused == ["00000", "00002"] and not strict.evaluated
+    assert strict.reused == ["00000", "00002"] and not strict.ran
     assert list(strict.failed) == ["00001"] and "--allow-short" in strict.failed["00001"]
-    assert strict.stage.redone == {}  # not taken over, so scored (and refused) as a new example
+    assert strict.redone == {}  # not taken over, so scored (and refused) as a new example
 
 
 def test_child_processes_write_what_this_process_writes(inputs, tmp_path):
     data, preds = inputs
     here = evaluate(preds, data, tmp_path / "here", run=RunOptions(Selection.of(["00000", "00002"]), progress=False))
     there = evaluate(preds, data, tmp_path / "there", run=RunOptions(Selection.of(["00000", "00002"]), executor=ProcessExecutor(workers=2), progress=False))
-    assert there.evaluated == here.evaluated == ["00000", "00002"]
+    assert there.ran == here.ran == ["00000", "00002"]
     assert_same_outputs(tmp_path / "here", tmp_path / "there")

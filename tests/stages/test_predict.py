@@ -75,7 +75,7 @@ def snapshot(folder: Path) -> dict:
 def test_a_rerun_predicts_nothing_again(split, tmp_path):
     out, counter = tmp_path / "out", Counted()
     first = run(split, out, counter)
-    assert first.written == IDS and first.skipped == [] and not first.failed and counter.calls == IDS
+    assert first.succeeded == IDS and first.reused == [] and not first.failed and counter.calls == IDS
     for sample_id in IDS:
         entry = read_ledger(out, STAGE, sample_id)
         assert entry["status"] == "succeeded" and len(entry["key"]) == 64
@@ -88,7 +88,7 @@ def test_a_rerun_predicts_nothing_again(split, tmp_path):
     assert not staging.exists() or not any(staging.iterdir())  # committed: nothing left behind
     before = snapshot(out)
     again = run(split, out, counter)
-    assert again.written == IDS and again.skipped == IDS and not again.redone
+    assert again.succeeded == IDS and again.reused == IDS and not again.redone
     assert counter.calls == IDS  # the predictor was not asked again
     after = snapshot(out)
     assert after == before  # nothing touched: videos, states, ledger, generation.json
@@ -99,21 +99,21 @@ def test_changed_settings_redo_exactly_the_examples_made_with_other_ones(split, 
     run(split, out, counter, severity=0.5)
     with caplog.at_level(logging.WARNING, logger="rigidbench.driver"):
         stronger = run(split, out, counter, severity=1.0)
-    assert stronger.skipped == [] and stronger.redone == {i: CHANGED for i in IDS}
+    assert stronger.reused == [] and stronger.redone == {i: CHANGED for i in IDS}
     assert "made with other inputs or settings are made again: 00000, 00001, 00002" in caplog.text
     assert counter.calls == IDS * 2
     assert generation(out)["settings"]["severity"] == 1.0
     # one example back to the first severity: only it is made again ...
     back = run(split, out, counter, severity=0.5, ids=["00001"])
-    assert back.written == ["00001"] and back.redone == {"00001": CHANGED}
+    assert back.succeeded == ["00001"] and back.redone == {"00001": CHANGED}
     assert counter.calls == IDS * 2 + ["00001"]
     # ... and a full run at the second severity redoes just that one, the others are up to date
     full = run(split, out, counter, severity=1.0)
-    assert full.skipped == ["00000", "00002"] and full.redone == {"00001": CHANGED}
+    assert full.reused == ["00000", "00002"] and full.redone == {"00001": CHANGED}
     assert counter.calls == IDS * 2 + ["00001", "00001"]
     assert generation(out)["settings"]["severity"] == 1.0 and list(generation(out)["examples"]) == IDS
     # the failure mode takes no seed: another --seed changes nothing it makes
-    assert run(split, out, counter, severity=1.0, seed=99).skipped == IDS
+    assert run(split, out, counter, severity=1.0, seed=99).reused == IDS
     assert counter.calls == IDS * 2 + ["00001", "00001"]
 
 
@@ -124,7 +124,7 @@ def test_a_changed_input_of_one_example_redoes_only_that_example(split, tmp_path
     prompt = split / "00001" / "prompt.txt"
     prompt.write_text("A ball rolls off the table and bounces twice.\n")
     summary = run(split, out, counter)
-    assert summary.skipped == ["00000", "00002"] and summary.redone == {"00001": CHANGED}
+    assert summary.reused == ["00000", "00002"] and summary.redone == {"00001": CHANGED}
     assert counter.calls == IDS + ["00001"]
     assert read_ledger(out, STAGE, "00001")["key"] != keys["00001"]
     assert {i: read_ledger(out, STAGE, i)["key"] for i in ("00000", "00002")} == {i: keys[i] for i in ("00000", "00002")}
@@ -151,13 +151,13 @@ def test_an_unreadable_example_fails_alone_and_runs_when_fixed(split, tmp_path):
     kept = frame.read_bytes()
     frame.unlink()
     summary = run(split, out, counter)
-    assert summary.written == ["00000", "00002"] and list(summary.failed) == ["00001"]
+    assert summary.succeeded == ["00000", "00002"] and list(summary.failed) == ["00001"]
     assert "00000.png" in summary.failed["00001"]
     record = generation(out)["examples"]["00001"]
     assert record["status"] == "failed" and record["seed"] == example_seed(0, "00001")
     frame.write_bytes(kept)
     again = run(split, out, counter)
-    assert again.skipped == ["00000", "00002"] and again.written == IDS and not again.failed
+    assert again.reused == ["00000", "00002"] and again.succeeded == IDS and not again.failed
     assert counter.calls == ["00000", "00002", "00001"]
     assert generation(out)["examples"]["00001"]["status"] == "succeeded"
 
@@ -198,7 +198,7 @@ def test_a_killed_run_resumes_with_the_outputs_of_a_clean_run(split, tmp_path):
     (out / ".00001.partial.mp4").write_bytes(b"half")  # and what a run of the earlier stage left in the folder
     counter = Counted()
     resumed = run(split, out, counter)
-    assert resumed.skipped == ["00000"] and resumed.written == IDS and not resumed.failed
+    assert resumed.reused == ["00000"] and resumed.succeeded == IDS and not resumed.failed
     assert counter.calls == ["00001", "00002"]
     assert not staging_path(out, STAGE, "00001").exists() and not (out / ".00001.partial.mp4").exists()
     clean = tmp_path / "clean"
@@ -215,13 +215,13 @@ def test_a_dry_run_follows_the_run_rule_and_writes_nothing(split, tmp_path, caps
     before = snapshot(out)
     capsys.readouterr()
     planned = run(split, out, counter, dry_run=True)
-    assert planned.planned == ["00001", "00002"] and planned.skipped == ["00000"] and planned.paid_calls == 0
+    assert planned.facts.planned == ["00001", "00002"] and planned.reused == ["00000"] and planned.facts.paid_calls == 0
     assert planned.redone == {"00002": CHANGED}
     lines = capsys.readouterr().out.strip().splitlines()
     assert [line.split(":", 1)[0] for line in lines] == ["00001", "00002"]
     assert json.loads(lines[0].split(": ", 1)[1]) == {"severity": 0.5, "re-rendered": False}
     assert snapshot(out) == before and counter.calls == ["00000", "00002"]
-    assert run(split, out, counter).written == IDS and counter.calls == ["00000", "00002", "00001", "00002"]
+    assert run(split, out, counter).succeeded == IDS and counter.calls == ["00000", "00002", "00001", "00002"]
 
 
 # -- a hosted model against the stand-in server ---------------------------------------------------------
@@ -250,13 +250,13 @@ def hosted(split, out, config, seed=7):
 def test_hosted_reruns_pay_only_for_examples_whose_request_changed(server, tmp_path):
     split, out = make_split(tmp_path / "eval", 3), tmp_path / "out"
     config = hosted_config(tmp_path)
-    assert hosted(split, out, config).written == IDS and len(server.created) == 3
+    assert hosted(split, out, config).succeeded == IDS and len(server.created) == 3
     requests = len(server.requests)
     again = hosted(split, out, config, seed=8)  # no seed is sent to this model: the same requests
-    assert again.skipped == IDS and len(server.requests) == requests  # not even a status poll
+    assert again.reused == IDS and len(server.requests) == requests  # not even a status poll
     (split / "00001" / "prompt.txt").write_text("A green pear rolls off the shelf.\n")
     changed = hosted(split, out, config)
-    assert changed.skipped == ["00000", "00002"] and changed.redone == {"00001": CHANGED}
+    assert changed.reused == ["00000", "00002"] and changed.redone == {"00001": CHANGED}
     assert len(server.created) == 4
     assert server.creations()[-1].json["input"]["prompt"].startswith("A green pear rolls off the shelf.")
     entry = generation(out)["examples"]["00001"]
@@ -269,7 +269,7 @@ def test_hosted_seeds_are_part_of_each_examples_key_when_the_model_takes_one(ser
     hosted(split, out, config, seed=7)
     assert sorted(c.json["input"]["seed"] for c in server.creations()) == \
            sorted(example_seed(7, i) for i in ("00000", "00001"))
-    assert hosted(split, out, config, seed=7).skipped == ["00000", "00001"] and len(server.created) == 2
+    assert hosted(split, out, config, seed=7).reused == ["00000", "00001"] and len(server.created) == 2
     other = hosted(split, out, config, seed=8)
     assert other.redone == {"00000": CHANGED, "00001": CHANGED} and len(server.created) == 4
     assert sorted(c.json["input"]["seed"] for c in server.creations()[2:]) == \

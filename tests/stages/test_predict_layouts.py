@@ -56,16 +56,16 @@ def test_a_folder_written_before_ledgers_is_taken_over_without_predicting_again(
     (out / GENERATION_FILE).write_text(json.dumps({**old_header(), "examples": old}))
     stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("*.mp4")}
     planned = run(split, out, counter, dry_run=True)
-    assert planned.skipped == IDS and planned.planned == [] and not (out / ".stages").exists()
+    assert planned.reused == IDS and planned.facts.planned == [] and not (out / ".stages").exists()
     report = run(split, out, counter)
-    assert report.skipped == IDS and counter.calls == []  # nothing predicted again
+    assert report.reused == IDS and counter.calls == []  # nothing predicted again
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.mp4")} == stamps
     rebuilt = generation(out)["examples"]["00002"]
     assert rebuilt["seed"] == example_seed(0, "00002") and "recovered" in rebuilt
     assert rebuilt["prompt"] == Sample(split / "00002").prompt + image_space_suffix(split, "00002")
     assert_taken_over(out, {**old, "00002": rebuilt})
     assert all(read_ledger(out, STAGE, i)["adopted"] is True for i in IDS)
-    assert run(split, out, counter).skipped == IDS and counter.calls == []
+    assert run(split, out, counter).reused == IDS and counter.calls == []
 
 
 def image_space_suffix(split: Path, sample_id: str) -> str:
@@ -78,12 +78,12 @@ def test_a_folder_made_with_other_settings_or_without_a_state_is_predicted(split
     out, counter = tmp_path / "out", Counted()
     videos(split, out, severity=0.2)
     (out / ".predictor.json").write_text(json.dumps({**SETTINGS, "severity": 0.2}))
-    assert run(split, out, counter).skipped == [] and counter.calls == IDS
+    assert run(split, out, counter).reused == [] and counter.calls == IDS
     other, counter = tmp_path / "other", Counted()
     videos(split, other)
     (other / ".predictor.json").write_text(json.dumps(SETTINGS))
     (other / "00002.state.npz").unlink()
-    assert run(split, other, counter).skipped == ["00000", "00001"] and counter.calls == ["00002"]
+    assert run(split, other, counter).reused == ["00000", "00001"] and counter.calls == ["00002"]
 
 
 def settings_digest(settings: dict) -> str:
@@ -109,7 +109,7 @@ def test_a_folder_with_per_example_records_is_taken_over_without_predicting_agai
     ledger_path(out, STAGE, "00001").unlink()  # killed between the commit and the ledger entry
     (out / GENERATION_FILE).write_text(json.dumps({**old_header(), "examples": {}}))  # killed before it
     report = run(split, out, Counted())
-    assert report.skipped == IDS and report.written == IDS
+    assert report.reused == IDS and report.succeeded == IDS
     assert_taken_over(out, records)
     assert [i for i in IDS if read_ledger(out, STAGE, i).get("adopted")] == ["00001"]
 
@@ -119,10 +119,10 @@ def test_a_video_without_its_ledger_entry_and_a_lost_generation_json_are_rebuilt
     run(split, out, counter)
     made = generation(out)
     ledger_path(out, STAGE, "00001").unlink()  # killed between the commit and the ledger entry
-    assert run(split, out, counter).skipped == IDS and counter.calls == IDS
+    assert run(split, out, counter).reused == IDS and counter.calls == IDS
     assert generation(out) == made and read_ledger(out, STAGE, "00001")["adopted"] is True
     (out / GENERATION_FILE).write_text('{"predictor": "sl')  # damaged
-    assert run(split, out, counter).skipped == IDS and generation(out) == made
+    assert run(split, out, counter).reused == IDS and generation(out) == made
     (out / GENERATION_FILE).unlink()
-    assert run(split, out, counter).skipped == IDS and generation(out) == made
+    assert run(split, out, counter).reused == IDS and generation(out) == made
     assert counter.calls == IDS

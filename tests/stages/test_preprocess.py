@@ -99,8 +99,8 @@ def assert_same_content(a: dict, b: dict) -> None:
 def test_a_rerun_encodes_nothing_and_a_changed_clip_or_setting_is_encoded_again(data, tmp_path, calls, capsys):
     cache = tmp_path / "cache"
     first = preprocess(data, cache)
-    assert first.encoded == ["00000", "00001", "00002"] and not first.failed
-    assert first.prompts_encoded == 4  # two distinct task prompts, each alone and with the suffix
+    assert first.ran == ["00000", "00001", "00002"] and not first.failed
+    assert first.facts.prompts_encoded == 4  # two distinct task prompts, each alone and with the suffix
     assert calls == {"vae": 1, "text": 1, "clips": 3}
     manifest = json.loads((cache / "manifest.json").read_text())
     examples = manifest["examples"]
@@ -109,7 +109,7 @@ def test_a_rerun_encodes_nothing_and_a_changed_clip_or_setting_is_encoded_again(
     stamps = {p: p.stat().st_mtime_ns for p in cache.rglob("*.safetensors")}
 
     again = preprocess(data, cache)
-    assert again.encoded == [] and again.skipped == ["00000", "00001", "00002"] and again.prompts_encoded == 0
+    assert again.ran == [] and again.reused == ["00000", "00001", "00002"] and again.facts.prompts_encoded == 0
     assert calls == {"vae": 1, "text": 1, "clips": 3}  # no model loaded, no clip encoded
     assert {p: p.stat().st_mtime_ns for p in cache.rglob("*.safetensors")} == stamps
     assert json.loads((cache / "manifest.json").read_text())["examples"] == manifest["examples"]
@@ -117,8 +117,8 @@ def test_a_rerun_encodes_nothing_and_a_changed_clip_or_setting_is_encoded_again(
     # one clip's prompt changes: that clip alone, and its two new prompts, are encoded
     (data / "00001" / "prompt.txt").write_text("A green ball rolls to the left.")
     changed = preprocess(data, cache)
-    assert changed.encoded == ["00001"] and changed.redone == {"00001": "its inputs or settings changed"}
-    assert changed.prompts_encoded == 2 and calls["clips"] == 4
+    assert changed.ran == ["00001"] and changed.redone == {"00001": "its inputs or settings changed"}
+    assert changed.facts.prompts_encoded == 2 and calls["clips"] == 4
     after = cache_content(cache)
     for i in ("00000", "00002"):
         assert all(torch.equal(x, y) for x, y in zip(before[i][:3], after[i][:3]))
@@ -131,8 +131,8 @@ def test_a_rerun_encodes_nothing_and_a_changed_clip_or_setting_is_encoded_again(
     assert main(["preprocess", "--data", str(data), "--out", str(cache), "--model", "tiny", "--no-progress",
                  "--resize", "lanczos"]) == 0
     out = capsys.readouterr().out
-    assert "3 clips and 0 prompts encoded" in out and "encoded again: 3 clips (00000: its inputs or settings " \
-                                                      "changed" in out
+    assert "preprocess: 3 made, 0 up to date, 0 failed of 3 clip(s)" in out and "prompts encoded: 0 (" in out
+    assert "  made again, its inputs or settings changed: 00000, 00001, 00002" in out
     lanczos = LatentCache(cache)
     assert lanczos.manifest["resize"] == "lanczos"
     assert not torch.equal(lanczos.latent("00000"), after["00000"][0])
@@ -167,7 +167,7 @@ run_preprocess({str(data)!r}, {str(cache)!r}, model="tiny", run=RunOptions(Selec
     assert not (cache / "latents" / "00002.safetensors").exists()
 
     resumed = preprocess(data, cache)
-    assert resumed.skipped == ["00000"] and resumed.encoded == ["00001", "00002"]
+    assert resumed.reused == ["00000"] and resumed.ran == ["00001", "00002"]
     assert not staging_path(cache, "preprocess", "00002").exists()
     assert_same_content(cache_content(cache), cache_content(clean))
     files = sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*.safetensors"))
@@ -192,7 +192,7 @@ def test_a_bad_clip_fails_alone_and_runs_again_once_repaired(data, tmp_path, cal
     assert read_ledger(cache, "preprocess", "00001")["status"] == "failed"
     (data / "00001" / "frames" / "00004.png").write_bytes(good)
     repaired = preprocess(data, cache)
-    assert repaired.encoded == ["00001"] and "00001" in repaired.redone and list(repaired.failed) == ["00003"]
+    assert repaired.ran == ["00001"] and "00001" in repaired.redone and list(repaired.failed) == ["00003"]
     assert sorted(LatentCache(cache).ids) == ["00000", "00001", "00002"]
 
 
@@ -200,15 +200,15 @@ def test_shards_and_child_processes_fill_one_cache_equal_to_a_single_run(data, t
     whole = tmp_path / "whole"
     preprocess(data, whole)
     sharded = tmp_path / "sharded"
-    parts = [preprocess(data, sharded, shard=Shard(i, 2)).encoded for i in range(2)]
+    parts = [preprocess(data, sharded, shard=Shard(i, 2)).ran for i in range(2)]
     assert parts == [["00000", "00002"], ["00001"]]
     assert not list(sharded.glob("part-*"))  # the shards share the cache (and its ledger)
     assert_same_content(cache_content(sharded), cache_content(whole))
-    assert preprocess(data, sharded).skipped == ["00000", "00001", "00002"]
+    assert preprocess(data, sharded).reused == ["00000", "00001", "00002"]
     # workers elsewhere (child processes here, Ray actors on a cluster) encode their clips' prompts themselves
     remote = tmp_path / "remote"
     report = preprocess(data, remote, executor=ProcessExecutor(workers=2), device="cpu")
-    assert sorted(report.encoded) == ["00000", "00001", "00002"] and report.prompts_encoded >= 4
+    assert sorted(report.ran) == ["00000", "00001", "00002"] and report.facts.prompts_encoded >= 4
     assert_same_content(cache_content(remote), cache_content(whole))
 
 
@@ -233,7 +233,7 @@ def test_a_cache_of_the_older_shard_layout_is_read_and_its_clips_adopted(data, t
     loads = dict(calls)
 
     report = preprocess(data, old)
-    assert report.skipped == ["00000", "00001"] and report.encoded == ["00002"]
+    assert report.reused == ["00000", "00001"] and report.ran == ["00002"]
     assert calls["clips"] == loads["clips"] + 1
     assert read_ledger(old, "preprocess", "00000")["adopted"] is True
     index = LatentCache(old)
@@ -244,5 +244,5 @@ def test_a_cache_of_the_older_shard_layout_is_read_and_its_clips_adopted(data, t
     assert_same_content(cache_content(old), cache_content(whole))
     # the older manifest is kept: a later run still knows where those clips are
     ledger_path(old, "preprocess", "00001").unlink()
-    assert preprocess(data, old).skipped == ["00000", "00001", "00002"]
+    assert preprocess(data, old).reused == ["00000", "00001", "00002"]
     assert calls["clips"] == loads["clips"] + 1 + 3  # (the run into `whole`)

@@ -130,7 +130,7 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
 
     # one clip of the cache is encoded again from another prompt: extraction redoes that clip alone
     (bundles / "00001" / "prompt.txt").write_text("A blue ball rolls to the right.")
-    assert run_preprocess(bundles, cache, model="tiny", run=RunOptions(progress=False)).encoded == ["00001"]
+    assert run_preprocess(bundles, cache, model="tiny", run=RunOptions(progress=False)).ran == ["00001"]
     assert extract(bundles, cache, acts).extracted == ["00001"]
     new, old = rows_of(acts, "00001"), clip_part(before, "00001")
     np.testing.assert_array_equal(new[0]["position"], old[0]["position"])  # the same targets, another text

@@ -497,15 +497,15 @@ def test_evaluate_threads_the_protocol_and_records_why_a_value_is_undefined(refe
     data, preds = reference_set
     summary = evaluate(preds, data, tmp_path / "run", nets=FeatureNets(), protocol=name, run=RunOptions(progress=False))
     chosen = get_protocol(name)
-    n = len(summary.evaluated)
+    n = len(summary.ran)
     assert n >= 1 and decoders == [chosen.decoder] * n and rules == [chosen.edge_rules] * n
-    facts = summary.results["protocol"]
+    facts = summary.facts.results["protocol"]
     assert (facts["name"], facts["edge_rules"], facts["decoder"]) == (name, chosen.edge_rules, chosen.decoder)
-    first = summary.evaluated[0]
+    first = summary.ran[0]
     record = __import__("json").loads((tmp_path / "run" / "examples" / f"{first}.json").read_text())
     assert record["protocol"] == name and record["notes"] == {"ate": "why it is undefined"}
     assert record["metrics"]["ate"] is None
-    assert summary.results["notes"] == {first: {"ate": "why it is undefined"}}
+    assert summary.facts.results["notes"] == {first: {"ate": "why it is undefined"}}
 
 
 def test_the_report_names_each_runs_protocol(tmp_path):

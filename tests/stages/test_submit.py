@@ -69,7 +69,7 @@ def published_run(tmp_path_factory):
     assert main(["predict", "reference", "--data", str(data), "--out", str(preds)]) == 0
     summary = evaluate(preds, data, run, perception="neural", perception_options=tiny_options(), nets=tiny_nets(),
                        run=RunOptions(progress=False))
-    assert summary.evaluated == IDS and not summary.failed and not summary.skipped_metrics
+    assert summary.ran == IDS and not summary.failed and not summary.facts.skipped_metrics
     return config, data, preds, run
 
 
@@ -87,7 +87,7 @@ def demo_like_run(tmp_path_factory):
     assert main(["predict", "reference", "--data", str(data), "--out", str(preds)]) == 0
     summary = evaluate(preds, data, run, perception="gt", nets=FeatureNets(skipped={
         "lpips": "LPIPS weights not found", "iddrift": "DINOv2 weights not found"}), run=RunOptions(progress=False))
-    assert len(summary.evaluated) == 5
+    assert len(summary.ran) == 5
     return run
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from ..argtypes import IdList, positive_int
 from ..context import RunContext
 from ..errors import RigidBenchError, UserError
-from . import Command, output_dir, run_options, split_dir, split_ids
+from . import Command, output_dir, report_stage, run_options, split_dir, split_ids
 
 
 def format_predictors() -> str:
@@ -66,18 +66,15 @@ def cmd_predict(args, ctx: RunContext) -> int:
     info = predictor_info(args.name)
     ctx.registry  # a bad configuration file: one error now, not one failure per example
     out = output_dir(args.out or Path("predictions") / info.name, dry_run=args.dry_run)
-    summary = predict(args.name, split_dir(args), out, predict_context(args, ctx, [args.name]), run_options(args),
-                      dry_run=args.dry_run)
+    report = predict(args.name, split_dir(args), out, predict_context(args, ctx, [args.name]), run_options(args),
+                     dry_run=args.dry_run)
     if args.dry_run:
-        print(f"{info.name}: would generate {len(summary.planned)} videos ({len(summary.skipped)} already there), "
-              f"{summary.paid_calls} paid API calls; nothing was sent")
+        planned = report.facts
+        print(f"{report.stage}: would make {len(planned.planned)}, {len(report.reused)} up to date, "
+              f"{len(report.failed)} failed of {len(report.selected)} {report.unit}(s)")
+        print(f"{info.name}: {planned.paid_calls} paid API calls; nothing was sent")
         return 0
-    print(f"{info.name}: {len(summary.written)} predictions in {out} "
-          f"({len(summary.skipped)} already there), {len(summary.failed)} failed"
-          + (f", {len(summary.elsewhere)} being made by another process" if summary.elsewhere else ""))
-    for sample_id, reason in summary.failed.items():
-        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
-    return 1 if summary.failed else 0
+    return report_stage(report)
 
 
 def _audit_arguments(p: argparse.ArgumentParser) -> None:

@@ -54,21 +54,22 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
     input_folder(args.predictions, "predictions", "the folder of <id>.mp4 files")
     out = output_dir(args.out or Path("runs") / args.predictions.name)
     options = ({"depth_model": args.depth_model, "device": ctx.device} if args.perception == "neural" else None)
-    summary = evaluate(args.predictions, split_dir(args), out, perception=args.perception, run=run_options(args),
-                       model=args.model, perception_options=options, device=ctx.device, protocol=args.protocol,
-                       first_frame_check=not args.no_first_frame_check,
-                       allow_short=args.allow_short)
-    status = report_stage(summary.stage)  # the words every stage uses; then evaluate's own lines
-    dataset = summary.results.get("dataset", {})
+    report = evaluate(args.predictions, split_dir(args), out, perception=args.perception, run=run_options(args),
+                      model=args.model, perception_options=options, device=ctx.device, protocol=args.protocol,
+                      first_frame_check=not args.no_first_frame_check,
+                      allow_short=args.allow_short)
+    status = report_stage(report)  # the words every stage uses; then evaluate's own lines
+    facts = report.facts
+    dataset = facts.results.get("dataset", {})
     print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
-          f"{summary.results['protocol']['name']}; model {summary.results['model']}")
-    for name, stats in summary.results["overall"].items():
+          f"{facts.results['protocol']['name']}; model {facts.results['model']}")
+    for name, stats in facts.results["overall"].items():
         mean = "n/a" if stats["mean"] is None else f"{stats['mean']:.4f}"
         print(f"  {name:12s} {mean:>10s}  (finite {stats['finite']}/{stats['n']})")
-    for metric, reason in summary.skipped_metrics.items():
+    for metric, reason in facts.skipped_metrics.items():
         print(f"  skipped {metric}: {reason}")
-    print("official result" if summary.official else
-          "not an official result: " + "; ".join(summary.results.get("why_not_official", [])))
+    print("official result" if facts.official else
+          "not an official result: " + "; ".join(facts.results.get("why_not_official", [])))
     return status
 
 

@@ -5,7 +5,6 @@ missing package names the extra)."""
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 from ..argtypes import existing_folder, output_folder, positive_int
@@ -13,7 +12,7 @@ from ..context import RunContext
 from ..errors import UserError
 from ..registry import load_target
 from ..train.config import MODEL_SPECS, NAMED_CONFIGS, RESIZES, VAE_DTYPES, load_train_config
-from . import Command, run_options
+from . import Command, report_stage, run_options
 
 
 def _preprocess_arguments(p) -> None:
@@ -56,20 +55,13 @@ def cmd_preprocess(args, ctx: RunContext) -> int:
     model_path = None if args.model_path is None else str(args.model_path)
     device = args.net_device or ctx.device
     # --executor ray: a Ray actor per GPU (per CPU with --device cpu), each encoding clips
-    summary = run_preprocess(args.data, args.out, model=args.model, split=args.split,
-                             run=run_options(args, actors=args.ray_shards), model_path=model_path, device=device,
-                             resize=args.resize, vae_dtype=args.vae_dtype)
+    report = run_preprocess(args.data, args.out, model=args.model, split=args.split,
+                            run=run_options(args, actors=args.ray_shards), model_path=model_path, device=device,
+                            resize=args.resize, vae_dtype=args.vae_dtype)
+    status = report_stage(report)  # the words every stage uses; then the prompts this run encoded
     where = " on Ray" if args.executor == "ray" else ""
-    print(f"preprocess ({args.model}, {summary.device}){where}: {len(summary.encoded)} clips and "
-          f"{summary.prompts_encoded} prompts encoded into {summary.cache} ({len(summary.skipped)} clips already "
-          f"there), {len(summary.failed)} failed")
-    changed = [i for i, why in summary.redone.items() if i in summary.encoded]
-    if changed:
-        print(f"  encoded again: {len(changed)} clips ({'; '.join(f'{i}: {summary.redone[i]}' for i in changed[:5])}"
-              f"{' ...' if len(changed) > 5 else ''})")
-    for sample_id, reason in summary.failed.items():
-        print(f"  FAILED {sample_id}: {reason}", file=sys.stderr)
-    return 1 if summary.failed else 0
+    print(f"  prompts encoded: {report.facts.prompts_encoded} ({args.model} on {report.facts.device}{where})")
+    return status
 
 
 def cmd_train(args, ctx: RunContext) -> int:

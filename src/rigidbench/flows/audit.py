@@ -50,8 +50,8 @@ def audit(models: Sequence[str], split_dir: Path, out: Path, ctx: PredictContext
     for name, info in zip(models, infos):
         preds = out / "predictions" / info.name
         planned = predict(name, split_dir, preds, ctx, replace(run, progress=False), dry_run=True)
-        if planned.paid_calls:
-            summary.paid_calls[info.name] = planned.paid_calls
+        if planned.facts.paid_calls:
+            summary.paid_calls[info.name] = planned.facts.paid_calls
     if summary.paid_calls:
         lines = ", ".join(f"{m}: {n}" for m, n in summary.paid_calls.items())
         print(f"paid API calls this audit needs: {lines} ({sum(summary.paid_calls.values())} in all)", flush=True)
@@ -75,7 +75,7 @@ def audit(models: Sequence[str], split_dir: Path, out: Path, ctx: PredictContext
                           nets=nets, model=info.name, perception_options=perception_options)
         for sample_id, reason in result.failed.items():
             summary.failed.setdefault(info.name, {}).setdefault(sample_id, reason)
-        summary.runs.append(result.out_dir)
+        summary.runs.append(result.root)
     if report and summary.runs:
         summary.report = build_report(summary.runs, out / "report", resamples=resamples, seed=0)
     return summary

@@ -85,10 +85,10 @@ def run_demo(out_dir: Path, quality: str = "demo", severity: float = 0.5, percep
     for mode in modes:
         preds = out_dir / "predictions" / mode
         run = predict(mode, split_dir, preds, PredictContext(ctx, 0.0 if mode == "reference" else severity))
-        summary = evaluate(preds, split_dir, out_dir / "runs" / mode, nets=nets, model=mode, perception=perception)
-        problems.update({f"{mode}/{k}": v for k, v in {**run.failed, **summary.failed}.items()})
-        table[mode] = [summary.results["overall"][m]["mean"] for m in METRICS]
-        run_dirs.append(summary.out_dir)
+        scored = evaluate(preds, split_dir, out_dir / "runs" / mode, nets=nets, model=mode, perception=perception)
+        problems.update({f"{mode}/{k}": v for k, v in {**run.failed, **scored.failed}.items()})
+        table[mode] = [scored.facts.results["overall"][m]["mean"] for m in METRICS]
+        run_dirs.append(scored.root)
     report_html = None
     if report:
         _stage(3, stages, f"writing the report ({resamples} bootstrap resamples)", started)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,22 +41,14 @@ from ..video import align_video, aligned_length, reference_times, resize_frames
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class EvaluationSummary:
-    """What ``evaluate`` did: ``evaluated`` (scored now, sorted), ``reused`` (unchanged records kept),
-    ``failed`` (id -> reason, in selection order), the skipped measurements, whether the run is official,
-    results.json's content, the stage driver's report (``stage.redone``: why each earlier record was
-    not reused) and the examples another process was scoring meanwhile (``elsewhere``, not waited for)."""
+@dataclass(frozen=True)
+class EvaluateFacts:
+    """What ``evaluate`` adds to its ``StageReport`` (``report.facts``): results.json's content, the skipped
+    measurements (name -> reason) and whether the run is official."""
 
-    out_dir: Path
-    evaluated: list[str]
-    reused: list[str]
-    failed: dict[str, str]
+    results: dict
     skipped_metrics: dict[str, str]
     official: bool
-    results: dict
-    stage: StageReport | None = None
-    elsewhere: list[str] = field(default_factory=list)  # being scored by another process on the same folder
 
 
 def short_clip_message(pred: Path, coverage: dict, fps: float) -> str:
@@ -107,7 +99,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
              run: RunOptions = RunOptions(), nets: FeatureNets | None = None,
              model: str | None = None, perception_options: dict | None = None, device: str | None = None,
              protocol: str | None = None, first_frame_check: bool = True,
-             allow_short: bool = False) -> EvaluationSummary:
+             allow_short: bool = False) -> StageReport:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
     holding one split); writes out/examples/<id>.json, .npz and .readouts.json, out/results.json and
     out/run.json.
@@ -127,7 +119,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     refuses it; ``allow_short`` scores it on the frames it has instead, marked short in its record and
     results.json (not official). Both rules are part of each example's key: changing one scores the
     examples again. Every record and results.json hold each example's coverage (seconds and fraction of
-    the span scored)."""
+    the span scored). Returns the driver's report, its ``facts`` an ``EvaluateFacts``."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
@@ -138,8 +130,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
                           rules=rules, perception=perception, perception_options=perception_options or {},
                           device=device, first_frame_check=first_frame_check, allow_short=allow_short,
                           shard=run.selection.shard)
-    report = run_stage(stage, run)
-    return stage.summary(report)
+    return run_stage(stage, run)
 
 
 def evaluation_resources(perception: str, device: str | None) -> Resources:
@@ -300,13 +291,7 @@ class EvaluateStage(Stage):
         write_json(self.folder.run, {**info, "protocol": self.rules.facts(), "dataset": results["dataset"]},
                    indent=2, allow_nan=False)
         self.results = results
-
-    def summary(self, report: StageReport) -> EvaluationSummary:
-        """The run as ``evaluate`` returns it (after ``finish``)."""
-        failed = {i: report.failed[i] for i in report.selected if i in report.failed}
-        return EvaluationSummary(self.root, sorted(report.ran), list(report.reused), failed, self.skipped,
-                                 bool(self.results["official"]), self.results, report, list(report.elsewhere))
-
+        report.facts = EvaluateFacts(results, dict(self.skipped), bool(official))
 
 def _skip_reason(records: list[dict], metric: str, nets: FeatureNets | None) -> str:
     if nets is not None and metric in nets.skipped:

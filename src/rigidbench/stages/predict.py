@@ -46,7 +46,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -76,15 +76,13 @@ STAGE = "predict"  # the driver's name for it: ledger entries in OUT/.stages/pre
 WORKER = "rigidbench.stages.predict:PredictWorker"
 
 
-@dataclass
-class PredictSummary:
-    written: list[str] = field(default_factory=list)  # finished now or before
-    skipped: list[str] = field(default_factory=list)  # of those, finished by an earlier run
-    failed: dict[str, str] = field(default_factory=dict)
-    planned: list[str] = field(default_factory=list)  # --dry-run: what would be generated
-    paid_calls: int = 0  # --dry-run: paid API calls the run would make
-    redone: dict[str, str] = field(default_factory=dict)  # made before and made again now: why
-    elsewhere: list[str] = field(default_factory=list)  # being made by another process in the same folder
+@dataclass(frozen=True)
+class DryRunFacts:
+    """What a dry run adds to its ``StageReport`` (``report.facts``): the examples a run would generate, in
+    selection order, and the paid API calls that takes."""
+
+    planned: list[str]
+    paid_calls: int
 
 
 def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps: float | None = None) -> None:
@@ -282,10 +280,11 @@ class PredictStage(Stage):
 
 def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | None = None,
             run: RunOptions = RunOptions(), predictor: Predictor | None = None,
-            dry_run: bool = False) -> PredictSummary:
+            dry_run: bool = False) -> StageReport:
     """Run predictor ``name`` (a registered name or a "module:attr" plug-in) over the reference bundles
-    in ``split_dir``; returns what was written, skipped and failed (with ``dry_run``: what would be
-    generated and how many paid calls that takes, sending and writing nothing). ``run`` selects the examples
+    in ``split_dir``; returns the driver's report (with ``dry_run``: the plan, its ``facts`` a
+    ``DryRunFacts`` saying what would be generated and how many paid calls that takes, sending and writing
+    nothing). ``run`` selects the examples
     and runs them (default: all, in this process, ``predictor.concurrency`` at once)."""
     ctx = ctx or PredictContext()
     if not 0.0 <= ctx.severity <= 1.0:
@@ -318,8 +317,7 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
                         "already created are kept with their ids; rerun the same command to resume without paying "
                         "twice", stopper.signal_name, len(report.ran), len(report.failed), len(report.interrupted))
             raise KeyboardInterrupt(stopper.signal_name)
-        return PredictSummary(written=report.succeeded, skipped=list(report.reused), failed=dict(report.failed),
-                              redone=dict(report.redone), elsewhere=list(report.elsewhere))
+        return report
     finally:
         if worker is not None:
             worker.close()  # (the executor has closed it when examples ran)
@@ -329,23 +327,23 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
             source.close()
 
 
-def _dry_run(stage: PredictStage, run: RunOptions, predictor: Predictor, ctx: PredictContext) -> PredictSummary:
+def _dry_run(stage: PredictStage, run: RunOptions, predictor: Predictor, ctx: PredictContext) -> StageReport:
     """Print the request of every example that a real run would generate (the driver's ``plan_only``: the
     same selection, check and plan as a run); send and write nothing."""
     report, todo = plan_only(stage, run)
-    summary = PredictSummary(skipped=list(report.reused), failed=dict(report.failed), redone=dict(report.redone))
+    planned = []
     for task in todo:
         sample_id = task["id"]
         try:  # a damaged bundle fails its example, as in a run (plan() reports one whose key fails the same way)
             request = predictor.describe(Sample(stage.split_dir / sample_id), example_context(ctx, sample_id))
         except EXAMPLE_ERRORS as exc:
-            summary.failed[sample_id] = str(exc)
+            report.failed[sample_id] = str(exc)
             log.warning("%s: example %s failed: %s", stage.name, sample_id, exc)
             continue
         print(f"{sample_id}: {json.dumps(request, sort_keys=True)}")
-        summary.planned.append(sample_id)
-    summary.paid_calls = len(summary.planned) if predictor.paid else 0
-    return summary
+        planned.append(sample_id)
+    report.facts = DryRunFacts(planned, len(planned) if predictor.paid else 0)
+    return report
 
 
 class PredictWorker(StageWorker):

@@ -38,7 +38,7 @@ from __future__ import annotations
 import gc
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -69,16 +69,13 @@ PROMPT_BATCH = 8
 LEGACY_MANIFEST = "legacy-manifest.json"  # an older cache's manifest, kept when the index replaces it
 
 
-@dataclass
-class PreprocessSummary:
-    cache: Path
-    encoded: list[str] = field(default_factory=list)
-    skipped: list[str] = field(default_factory=list)
-    failed: dict[str, str] = field(default_factory=dict)
-    redone: dict[str, str] = field(default_factory=dict)
-    prompts_encoded: int = 0
-    device: str = "cpu"
-    report: StageReport | None = None
+@dataclass(frozen=True)
+class PreprocessFacts:
+    """What ``run_preprocess`` adds to its ``StageReport`` (``report.facts``): how many prompts this run encoded
+    and the device the encoders ran on."""
+
+    prompts_encoded: int
+    device: str
 
 
 def resize_frame(frame, size: tuple[int, int], resize: str = "lanczos"):
@@ -390,10 +387,11 @@ class PreprocessWorker(StageWorker):
 def run_preprocess(data: str | Path, out: str | Path, *, model: str = "wan-2.2", split: str | None = None,
                    run: RunOptions = RunOptions(), model_path: str | None = None, device: str | None = None,
                    shard_size: int | None = None, resize: str = "bicubic",
-                   vae_dtype: str = "auto") -> PreprocessSummary:
+                   vae_dtype: str = "auto") -> StageReport:
     """Encode the bundles of ``data`` (a split directory or a data root) into the cache ``out``: the first
     ``limit`` (or the ``ids``), this ``shard``'s part of them, on ``executor`` (default: this process).
-    ``shard_size`` is accepted for older callers and unused (version 3 keeps one file per clip)."""
+    ``shard_size`` is accepted for older callers and unused (version 3 keeps one file per clip). Returns the
+    driver's report, its ``facts`` a ``PreprocessFacts``."""
     split_dir = resolve_split_dir(data, split)
     if split_dir.name == "eval":
         log.warning("%s looks like the evaluation split; the paper fine-tunes on the disjoint training split",
@@ -403,6 +401,5 @@ def run_preprocess(data: str | Path, out: str | Path, *, model: str = "wan-2.2",
                             vae_dtype=vae_dtype, remote=not executor.in_process, progress=run.progress)
     report = run_stage(stage, run)
     encoded = stage.prompts_encoded + sum(int(report.results[i].get("prompts_encoded", 0)) for i in report.ran)
-    return PreprocessSummary(cache=Path(out), encoded=list(report.ran), skipped=list(report.reused),
-                             failed=dict(report.failed), redone=dict(report.redone), prompts_encoded=encoded,
-                             device=stage.device, report=report)
+    report.facts = PreprocessFacts(encoded, stage.device)
+    return report
