@@ -47,6 +47,7 @@ def hosted_section(examples: int = 24, repeats: int = 3, concurrency: tuple[int,
 
     from rigidbench.config import PACKAGE_CONFIG_DIR
     from rigidbench.context import RunContext
+    from rigidbench.driver import RunOptions
     from rigidbench.stages.predict import predict
     from rigidbench.predictors import PREDICTORS, PredictContext
     from rigidbench.predictors.replicate import CallStats, ClientSettings, Deadline, ReplicateClient
@@ -83,7 +84,7 @@ def hosted_section(examples: int = 24, repeats: int = 3, concurrency: tuple[int,
                     out = tmp / f"out-{workers}-{r}"
                     ctx = PredictContext(RunContext(config_dirs=(config_dir,)), options={"concurrency": workers})
                     t0 = time.perf_counter()
-                    summary = predict("veo-3.1", split, out, ctx, progress=False,
+                    summary = predict("veo-3.1", split, out, ctx, run=RunOptions(progress=False),
                                       predictor=PREDICTORS["veo-3.1"].create())
                     seconds.append(time.perf_counter() - t0)
                     if summary.failed:

@@ -74,11 +74,12 @@ def run(ids, preset: str, modes, root: Path) -> dict:
 
 
 def evaluate_means(preds: Path, data: Path, out: Path, protocol: str) -> dict:
+    from rigidbench.driver import RunOptions
     from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
 
-    summary = evaluate(preds, data, out, nets=FeatureNets(), progress=False, protocol=protocol, allow_short=True)
-    return {m: (summary.results["overall"].get(m) or {}).get("mean") for m in summary.results["metrics"]}
+    summary = evaluate(preds, data, out, nets=FeatureNets(), run=RunOptions(progress=False), protocol=protocol, allow_short=True)
+    return {m: (summary.facts.results["overall"].get(m) or {}).get("mean") for m in summary.facts.results["metrics"]}
 
 
 def change(a: dict, b: dict) -> dict:
@@ -92,13 +93,14 @@ def change(a: dict, b: dict) -> dict:
 
 def suite(data: Path, modes, root: Path) -> dict:
     """Every failure mode predicted once and scored under each protocol."""
+    from rigidbench.driver import RunOptions
     from rigidbench.stages.predict import predict
     from rigidbench.predictors import PredictContext
 
     means: dict = {p: {} for p in PROTOCOLS}
     for mode in modes:
         preds = root / "predictions" / mode
-        predict(mode, data, preds, PredictContext(severity=0.5), progress=False)
+        predict(mode, data, preds, PredictContext(severity=0.5), run=RunOptions(progress=False))
         for protocol in PROTOCOLS:
             means[protocol][mode] = evaluate_means(preds, data, root / "runs" / protocol / mode, protocol)
     return {"modes": list(modes),
@@ -117,9 +119,10 @@ def perceived_inputs(data: Path, sample_id: str, root: Path):
     from rigidbench.stages.predict import predict
     from rigidbench.predictors import PredictContext
     from rigidbench.video import align_video, read_video, reference_times
+    from rigidbench.driver import RunOptions, Selection
 
     preds = root / "predictions-hostile"
-    predict("reference", data, preds, PredictContext(), ids=[sample_id], progress=False)
+    predict("reference", data, preds, PredictContext(), run=RunOptions(Selection.of([sample_id]), progress=False))
     sample = Sample(data / sample_id)
     pred = preds / f"{sample_id}.mp4"
     video = read_video(pred)

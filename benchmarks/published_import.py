@@ -87,6 +87,7 @@ def main() -> None:
     from fixtures import published_set as ps
 
     from rigidbench.config import registry
+    from rigidbench.driver import RunOptions
     from rigidbench.stages.import_set import import_published
     from rigidbench.datasets.convert import source_digest
     from rigidbench.groundtruth.bundle import check_bundle
@@ -120,7 +121,7 @@ def main() -> None:
         reg = registry()
         data = tmp / "data"
         t0, c0 = time.perf_counter(), time.process_time()
-        summary = import_published(tmp / "extracted", data, registry=reg, progress=False)
+        summary = import_published(tmp / "extracted", data, registry=reg, run=RunOptions(progress=False))
         import_s, import_cpu = time.perf_counter() - t0, time.process_time() - c0
         if summary.failed:
             raise SystemExit(f"the import failed: {summary.failed}")
@@ -129,7 +130,7 @@ def main() -> None:
         linked = sum((f.stat().st_dev, f.stat().st_ino) in source_inodes for f in frame_files)
         added = bytes_by_kind(files(data), source_inodes)
         t0 = time.perf_counter()
-        rerun = import_published(tmp / "extracted", data, registry=reg, progress=False)
+        rerun = import_published(tmp / "extracted", data, registry=reg, run=RunOptions(progress=False))
         rerun_s = time.perf_counter() - t0
         shutil.rmtree(tmp / "extracted")
         out = {
@@ -142,7 +143,7 @@ def main() -> None:
                        "frames": {"linked": linked, "written": len(frame_files) - linked}},
             "digest": {"seconds": round(digest_s, 4)},
             "frame_check": {"seconds": round(frame_check_s, 4)},
-            "rerun": {"seconds": round(rerun_s, 3), "unchanged": len(rerun.unchanged)},
+            "rerun": {"seconds": round(rerun_s, 3), "unchanged": len(rerun.reused)},
             "after_deleting_source": {"bundle_ok": check_bundle(bundle) == []},
         }
     print(json.dumps(out, indent=1))

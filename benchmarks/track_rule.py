@@ -57,6 +57,7 @@ def main() -> int:
 
 def run(ids, preset: str, modes, root: Path) -> dict:
     """Render ``ids`` at ``preset`` under ``root``, then score ``modes`` with tracks by each rule."""
+    from rigidbench.driver import RunOptions
     from rigidbench.stages.evaluate import evaluate
     from rigidbench.perception.features import FeatureNets
     from rigidbench.stages.predict import predict
@@ -69,10 +70,10 @@ def run(ids, preset: str, modes, root: Path) -> dict:
         scores = {}
         for mode in modes:
             preds = root / rule / "predictions" / mode
-            predict(mode, data, preds, PredictContext(severity=0.5), progress=False)
-            summary = evaluate(preds, data, root / rule / "runs" / mode, nets=FeatureNets(), progress=False,
+            predict(mode, data, preds, PredictContext(severity=0.5), run=RunOptions(progress=False))
+            summary = evaluate(preds, data, root / rule / "runs" / mode, nets=FeatureNets(), run=RunOptions(progress=False),
                                protocol="lossless")
-            scores[mode] = {m: summary.results["overall"][m]["mean"] for m in TRACK_METRICS}
+            scores[mode] = {m: summary.facts.results["overall"][m]["mean"] for m in TRACK_METRICS}
         out["rules"][rule] = {"points": sum(f["points"] for f in facts),
                               "visible_frac": round(float(np.mean([f["visible_frac"] for f in facts])), 4),
                               "scores": scores}

@@ -217,6 +217,7 @@ def test_evaluate_stops_before_any_example_when_neural_weights_are_missing(tmp_p
     ckpt.write_bytes(b"present")
     monkeypatch.setenv("RIGIDBENCH_VDA", str(ckpt))  # one weight present: not reported
     (tmp_path / "preds").mkdir()
+    (tmp_path / "preds" / "00000.mp4").write_bytes(b"not read")  # an example to score: the check runs
     (tmp_path / "data" / "00000").mkdir(parents=True)
     (tmp_path / "data" / "00000" / "metadata.json").write_text("{}")  # a bundle that is never read
     with pytest.raises(EvaluationError) as err:
