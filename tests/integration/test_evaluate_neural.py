@@ -41,7 +41,7 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
 
     preds = tmp_path / "predictions" / "reference"
     run = predict("reference", data_dir, preds, PredictContext(severity=1.0), run=RunOptions(progress=False))
-    assert not run.failed and len(run.written) == 1
+    assert not run.failed and len(run.succeeded) == 1
     models = tiny_perception.tiny_models()
     calls = count_forward_calls(models)
     options = {"models": models, "depth_input_size": 56, "device": "cpu"}
@@ -49,7 +49,7 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
                        identity=load_identity_features(device="cpu", model=tiny_perception.tiny_dinov2()))
     out = tmp_path / "runs" / "reference"
     summary = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=nets, run=RunOptions(progress=False))
-    assert not summary.failed and summary.evaluated == ["00015"]
+    assert not summary.failed and summary.ran == ["00015"]
     # SAM 2: the prompt frame, then 12 propagation steps (the `test` preset has 12 frames).
     assert calls["sam2"] == 1 + 12 and calls["cotracker"] == 2 and calls["depth"] >= 1  # actors, background
 
@@ -68,8 +68,8 @@ def test_neural_perception_scores_a_rendered_example_and_caches_each_model(data_
     # Unchanged inputs: the example is reused. Changed feature nets: rescored, but no model runs again.
     before = dict(calls)
     again = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=nets, run=RunOptions(progress=False))
-    assert again.reused == ["00015"] and not again.evaluated
+    assert again.reused == ["00015"] and not again.ran
     rescored = evaluate(preds, data_dir, out, perception="neural", perception_options=options, nets=FeatureNets(), run=RunOptions(progress=False))
-    assert rescored.evaluated == ["00015"] and calls == before
+    assert rescored.ran == ["00015"] and calls == before
     rerecord = json.loads((out / "examples" / "00015.json").read_text())
     assert rerecord["metrics"]["iou"] == m["iou"] and rerecord["metrics"]["lpips"] is None

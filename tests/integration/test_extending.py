@@ -56,12 +56,12 @@ def test_a_registered_metric_and_predictor_appear_in_every_output(data_dir, tmp_
         for name in ("reference", "inverted"):
             preds = tmp_path / "predictions" / name
             run = predict(name, data_dir, preds, PredictContext(severity=0.0), run=RunOptions(progress=False))
-            assert run.written == ["00015"] and not run.failed
+            assert run.succeeded == ["00015"] and not run.failed
             summary = evaluate(preds, data_dir, tmp_path / "runs" / name, nets=FeatureNets(),
                                protocol="lossless", run=RunOptions(progress=False))  # the toy metric is hand-computed on the decoded frames
             assert not summary.failed
-            table[name] = [summary.results["overall"][m]["mean"] for m in METRICS]
-            runs.append(summary.out_dir)
+            table[name] = [summary.facts.results["overall"][m]["mean"] for m in METRICS]
+            runs.append(summary.root)
         record = json.loads((tmp_path / "runs" / "inverted" / "examples" / "00015.json").read_text())
         frames = np.load(tmp_path / "runs" / "inverted" / "examples" / "00015.npz")["mad"]
         # Hand-computed: inverting colours moves every channel value v to 255 - v, |v - (255 - v)| = |2v - 255|

@@ -65,7 +65,7 @@ def scored(data_dir, sample, counterfactual, tmp_path_factory):
         write_prediction(counterfactual(mode, severity)[0], preds, SAMPLE_ID, sample.fps)
         summary = evaluate(preds, data_dir, root / "runs" / preds.name, nets=FeatureNets(), run=RunOptions(progress=False))
         assert not summary.failed
-        return {k: v["mean"] for k, v in summary.results["overall"].items()}
+        return {k: v["mean"] for k, v in summary.facts.results["overall"].items()}
 
     return get
 
@@ -78,14 +78,14 @@ def test_zero_severity_rerender_is_the_reference(data_dir, sample, tmp_path):
     """Same spec, seed, preset and device: Bullet and Cycles reproduce the reference."""
     preds = tmp_path / "predictions" / "gravity"
     run = predict("gravity", data_dir, preds, PredictContext(severity=0.0), run=RunOptions(progress=False))
-    assert run.written == [SAMPLE_ID] and not run.failed
+    assert run.succeeded == [SAMPLE_ID] and not run.failed
     video = read_video(preds / f"{SAMPLE_ID}.mp4")
     assert video.frames.shape == sample.frames.shape
     assert np.abs(video.frames.astype(int) - sample.frames.astype(int)).max() <= 1
     state, ref = WorldState.load(state_path(preds / f"{SAMPLE_ID}.mp4")), reference_state(sample)
     for field in ("masks", "depth_m", "tracks", "visibility"):
         np.testing.assert_array_equal(getattr(state, field), getattr(ref, field), err_msg=field)
-    overall = evaluate(preds, data_dir, tmp_path / "runs", nets=FeatureNets(), run=RunOptions(progress=False)).results["overall"]
+    overall = evaluate(preds, data_dir, tmp_path / "runs", nets=FeatureNets(), run=RunOptions(progress=False)).facts.results["overall"]
     assert overall["iou"]["mean"] == 1.0 and overall["ate"]["mean"] == 0.0
     assert overall["ate3d"]["mean"] == pytest.approx(ate3d_floor(sample), abs=2e-3)  # the metric's floor
 

@@ -243,7 +243,7 @@ def submitted(tmp_path_factory, torch_single_thread) -> list[Path]:
         options = {"models": tiny_perception.tiny_models(), "depth_input_size": 56, "device": "cpu"}
         summary = evaluate(preds, data, run, perception="neural", perception_options=options, nets=nets,
                            run=RunOptions(progress=False))
-        assert not summary.failed and not summary.skipped_metrics
+        assert not summary.failed and not summary.facts.skipped_metrics
         (root / f"{model}.yaml").write_text(yaml.safe_dump({**card, "name": f"{model} entry"}))
         bundle = root / f"{model}.tar.gz"
         videos = ["--videos", str(preds)] if k == 1 else []

@@ -57,7 +57,7 @@ def test_a_local_model_predicts_validates_and_scores(name, data_dir, tmp_path, o
     ctx = PredictContext(seed=4, options=MappingProxyType({"pipeline": build(), **options}))
     preds = tmp_path / "predictions" / name
     run = predict(name, data_dir, preds, ctx, run=RunOptions(progress=False))
-    assert not run.failed and run.written == ["00015"]
+    assert not run.failed and run.succeeded == ["00015"]
 
     info = probe_video(preds / "00015.mp4")
     assert info.n_frames == options["num_frames"] and info.fps_nominal == pytest.approx(fps)
@@ -82,17 +82,17 @@ def test_a_local_model_predicts_validates_and_scores(name, data_dir, tmp_path, o
     assert report.ok and not report.errors and "00015" in report.matched
 
     # a rerun with the same settings skips the finished example
-    assert predict(name, data_dir, preds, ctx, run=RunOptions(progress=False)).skipped == ["00015"]
+    assert predict(name, data_dir, preds, ctx, run=RunOptions(progress=False)).reused == ["00015"]
 
     models = tiny_perception.tiny_models()
     summary = evaluate(preds, data_dir, tmp_path / "runs" / name, perception="neural",
                        perception_options={"models": models, "depth_input_size": 56, "device": "cpu"},
                        nets=FeatureNets(), first_frame_check=False, run=RunOptions(progress=False))
-    assert not summary.failed and summary.evaluated == ["00015"]
-    assert summary.results["protocol"]["first_frame_check"] is False
-    record = json.loads((summary.out_dir / "examples" / "00015.json").read_text())
+    assert not summary.failed and summary.ran == ["00015"]
+    assert summary.facts.results["protocol"]["first_frame_check"] is False
+    record = json.loads((summary.root / "examples" / "00015.json").read_text())
     assert record["perception"] == "neural" and set(record["metrics"]) == set(METRICS)
     m = record["metrics"]
     assert 0.0 <= m["iou"] <= 1.0 and np.isfinite(m["ssim"]) and np.isfinite(m["centroid_l2"])
-    arrays = np.load(summary.out_dir / "examples" / "00015.npz")
+    arrays = np.load(summary.root / "examples" / "00015.npz")
     assert arrays["iou"].shape == (12,)

@@ -69,7 +69,7 @@ def test_ray_and_shards_score_exactly_like_a_local_run(cluster, local_data, tmp_
     on_ray = evaluate(preds, local_data, tmp_path / "ray", run=RunOptions(executor=RayExecutor(workers=2), progress=False))
     for shard in (Shard(i, 3) for i in range(3)):
         evaluate(preds, local_data, tmp_path / "shards", run=RunOptions(Selection.of(None, None, shard), progress=False))
-    assert sorted(local.evaluated) == sorted(on_ray.evaluated) == list(IDS)
+    assert sorted(local.ran) == sorted(on_ray.ran) == list(IDS)
     for sample_id in IDS:
         records = [json.loads((tmp_path / run / "examples" / f"{sample_id}.json").read_text())
                    for run in ("local", "ray", "shards")]
@@ -84,8 +84,8 @@ def test_ray_and_shards_score_exactly_like_a_local_run(cluster, local_data, tmp_
             np.testing.assert_array_equal(arrays[0][key], arrays[2][key])
     # A final run over the whole split reuses every shard's example and aggregates them.
     final = evaluate(preds, local_data, tmp_path / "shards", run=RunOptions(progress=False))
-    assert sorted(final.reused) == list(IDS) and not final.evaluated
-    assert final.results["overall"] == local.results["overall"]
+    assert sorted(final.reused) == list(IDS) and not final.ran
+    assert final.facts.results["overall"] == local.facts.results["overall"]
 
 
 def test_shards_partition_the_manifest():
@@ -117,7 +117,7 @@ def test_a_worker_killed_mid_example_still_yields_every_example_once(cluster, lo
     out = tmp_path / "predictions"
     with PREDICTORS.added(info):
         summary = predict("dies-once", local_data, out, PredictContext(), run=RunOptions(executor=RayExecutor(workers=1, max_retries=3), progress=False))
-    assert summary.written == list(IDS) and not summary.failed
+    assert summary.succeeded == list(IDS) and not summary.failed
     videos = sorted(p.name for p in out.glob("*.mp4"))
     assert videos == [f"{i}.mp4" for i in IDS]
     generation = json.loads((out / "generation.json").read_text())
