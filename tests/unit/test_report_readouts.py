@@ -32,7 +32,7 @@ def runs(tmp_path_factory):
         predict(mode, root / "data" / "eval", preds, PredictContext(severity=1.0), run=RunOptions(progress=False))
         summary = evaluate(preds, root / "data", root / "runs" / mode, nets=FeatureNets(), run=RunOptions(progress=False))
         assert not summary.failed, summary.failed
-        out.append(summary.out_dir)
+        out.append(summary.root)
     return root, out
 
 
