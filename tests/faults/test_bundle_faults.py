@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 
-from fixtures import published_set as ps  # noqa: E402
+from fixtures import published_runs  # noqa: E402
 
 from rigidbench.driver import RunOptions, Selection  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
@@ -27,7 +27,6 @@ from rigidbench.errors import BundleError  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle  # noqa: E402
 from rigidbench.preflight import validate_predictions  # noqa: E402
 from rigidbench.stages.evaluate import evaluate  # noqa: E402
-from rigidbench.stages.import_set import import_published  # noqa: E402
 from rigidbench.video import read_video, write_video  # noqa: E402
 
 pytest.importorskip("av")
@@ -40,12 +39,7 @@ NPZ_FILES = ("masks.npz", "depth.npz", "tracks.npz", "trajectories.npz")
 @pytest.fixture(scope="module")
 def reference_set(tmp_path_factory):
     """(data root with eval/00000..00002 imported, predictions/reference made by `rigidbench predict`)."""
-    root = tmp_path_factory.mktemp("faults")
-    published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    summary = import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False))
-    assert summary.ran == list(IDS) and not summary.failed
-    assert main(["predict", "reference", "--data", str(root / "data"), "--out", str(root / "reference")]) == 0
-    return root / "data", root / "reference"
+    return published_runs.imported_with_reference(tmp_path_factory.mktemp("faults"))
 
 
 @pytest.fixture()

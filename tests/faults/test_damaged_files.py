@@ -21,20 +21,17 @@ import numpy as np
 import pytest
 
 
-from fixtures import published_set as ps  # noqa: E402
+from fixtures import published_runs  # noqa: E402
 from fixtures.toy_stage import ToyStage  # noqa: E402
 
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.config import registry  # noqa: E402
 from rigidbench.driver import ItemResult, RunOptions, Stage, StageWorker, read_ledger, run_stage
-from rigidbench.errors import BundleError  # noqa: E402
 from rigidbench.groundtruth.bundle import Sample, check_bundle  # noqa: E402
 from rigidbench.hashing import digest  # noqa: E402
 from rigidbench.perception.features import FeatureNets  # noqa: E402
 from rigidbench.preflight import validate_predictions  # noqa: E402
 from rigidbench.report.load import load_runs  # noqa: E402
 from rigidbench.stages.evaluate import evaluate  # noqa: E402
-from rigidbench.stages.import_set import import_published  # noqa: E402
 from rigidbench.video import read_video, write_video  # noqa: E402
 
 pytest.importorskip("av")
@@ -133,10 +130,7 @@ def restore(path: Path, original: Path) -> None:
 def made(tmp_path_factory):
     """(data root with eval/00000..00002 imported, the `reference` predictions, a run folder evaluating them)."""
     root = tmp_path_factory.mktemp("damaged")
-    published = ps.write_set(root / "published" / "rigidbench-eval-v1.1")
-    summary = import_published(published.parent, root / "data", registry=registry(), run=RunOptions(progress=False))
-    assert summary.ran == list(IDS) and not summary.failed
-    assert main(["predict", "reference", "--data", str(root / "data"), "--out", str(root / "preds")]) == 0
+    published_runs.imported_with_reference(root, "preds")
     first = evaluate(root / "preds", root / "data", root / "run", nets=FeatureNets(), run=RunOptions(progress=False))
     assert first.ran == list(IDS) and not first.failed
     return root / "data", root / "preds", root / "run"

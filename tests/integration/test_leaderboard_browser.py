@@ -216,23 +216,14 @@ def submitted(tmp_path_factory, torch_single_thread) -> list[Path]:
         pytest.importorskip(module)
     import yaml
 
-    from fixtures import published_set as ps
-    from fixtures import tiny_perception
-    from fixtures.dataset_server import write_description
+    from fixtures import published_runs, tiny_perception
     from rigidbench.cli import main
     from rigidbench.driver import RunOptions
     from rigidbench.perception.features import FeatureNets, load_identity_features
     from rigidbench.stages.evaluate import evaluate
 
     root = tmp_path_factory.mktemp("submitted")
-    archive = root / "test-eval-v0.1.tar.gz"
-    md5 = ps.make_archive(ps.write_set(root / "set"), archive)
-    config = root / "config"
-    desc = write_description(config, "test-eval-v0.1", name="test-eval", version="0.1", archive=archive.name,
-                             data=archive.read_bytes(), md5=md5, part_bytes=1 << 20, url="http://127.0.0.1:9/{part}")
-    desc.write_text(desc.read_text() + "examples: 3\n")
-    data = root / "data"
-    assert main(["--config", str(config), "import", str(archive), "--data", str(data), "--dataset", "test-eval"]) == 0
+    config, data = published_runs.verified_test_set(root)
     nets = FeatureNets(lpips=tiny_perception.tiny_lpips(),
                        identity=load_identity_features(device="cpu", model=tiny_perception.tiny_dinov2()))
     card = yaml.safe_load((Path(__file__).resolve().parents[2] / "docs" / "card.example.yaml").read_text())

@@ -23,6 +23,7 @@ pytest.importorskip("av")
 pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
+from fixtures import published_runs  # noqa: E402
 from fixtures import published_set as ps  # noqa: E402
 from fixtures import tiny_perception  # noqa: E402
 from fixtures.dataset_server import write_description  # noqa: E402
@@ -58,14 +59,8 @@ def tiny_nets() -> FeatureNets:
 def published_run(tmp_path_factory):
     """(config dir, data root, predictions, run folder) of a complete neural run on the verified synthetic set."""
     root = tmp_path_factory.mktemp("submit")
-    archive = root / "test-eval-v0.1.tar.gz"
-    md5 = ps.make_archive(ps.write_set(root / "set"), archive)
-    config = root / "config"
-    desc = write_description(config, "test-eval-v0.1", name="test-eval", version="0.1", archive=archive.name,
-                             data=archive.read_bytes(), md5=md5, part_bytes=1 << 20, url="http://127.0.0.1:9/{part}")
-    desc.write_text(desc.read_text() + "examples: 3\n")
-    data, preds, run = root / "data", root / "predictions" / "reference", root / "runs" / "reference"
-    assert main(["--config", str(config), "import", str(archive), "--data", str(data), "--dataset", "test-eval"]) == 0
+    config, data = published_runs.verified_test_set(root)
+    preds, run = root / "predictions" / "reference", root / "runs" / "reference"
     assert main(["predict", "reference", "--data", str(data), "--out", str(preds)]) == 0
     summary = evaluate(preds, data, run, perception="neural", perception_options=tiny_options(), nets=tiny_nets(),
                        run=RunOptions(progress=False))
