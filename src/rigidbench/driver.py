@@ -94,21 +94,27 @@ class Selection:
         shard = shard if isinstance(shard, Shard) else Shard.parse(shard)
         return cls(tuple(ids) if ids else None, limit, shard)
 
-    def apply(self, candidates: Sequence[str], where: str) -> list[str]:
+    def apply(self, candidates: Sequence[str], where: str,
+              example_of: Callable[[str], str] | None = None) -> list[str]:
         """The selected ids of ``candidates`` (in their order); an id not among them is a UserError naming
-        ``where`` (the folder or manifest the candidates come from)."""
+        ``where`` (the folder or manifest the candidates come from). With ``example_of`` (item -> its example,
+        for stages whose items are several samples of one example), ``ids`` and ``limit`` choose examples and
+        every item of a chosen example goes with it; the shard then splits the items."""
         chosen = list(candidates)
+        example = example_of or (lambda item: item)
+        examples = list(dict.fromkeys(example(i) for i in chosen))
         if self.ids:
-            known = set(chosen)
+            known = set(examples)
             unknown = [i for i in dict.fromkeys(self.ids) if i not in known]
             if unknown:
-                span = f" (ids run from {chosen[0]} to {chosen[-1]})" if chosen else " (it holds none)"
+                span = f" (ids run from {examples[0]} to {examples[-1]})" if examples else " (it holds none)"
                 raise UserError(f"unknown example id(s) {', '.join(unknown)} in {where}{span}")
             wanted = set(self.ids)
-            chosen = [i for i in chosen if i in wanted]
+            examples = [i for i in examples if i in wanted]
         if self.limit is not None:
-            chosen = chosen[:self.limit]
-        return self.shard.select(chosen)
+            examples = examples[:self.limit]
+        kept = set(examples)
+        return self.shard.select([i for i in chosen if example(i) in kept])
 
 
 @dataclass(frozen=True)
@@ -193,6 +199,11 @@ class Stage(ABC):
     def where(self) -> str:
         """Where the candidates come from, for the unknown-id error."""
         return str(self.root)
+
+    def example_of(self, item_id: str) -> str:
+        """The example an item belongs to (a stage whose items are several samples of an example says so, e.g.
+        ``folders.sample_item``); ``--ids`` and ``--limit`` select examples. By default an item is its example."""
+        return item_id
 
     @abstractmethod
     def key(self, item_id: str, payload: Any) -> "str | Key":
@@ -695,7 +706,7 @@ def _planned(stage: Stage, run: RunOptions, write: bool) -> tuple[StageReport, l
     ``where``), the stage's ``check`` of the selection, the plan (keys, ledger, adopted outputs; written only
     with ``write``). Returns the report so far and the tasks still to run."""
     items = stage.items()
-    ids = run.selection.apply(list(items), stage.where)
+    ids = run.selection.apply(list(items), stage.where, stage.example_of)
     stage.check(ids)
     report = StageReport(stage.name, stage.root, selected=ids, unit=stage.unit)
     return report, plan(stage, ids, items, report, write=write)

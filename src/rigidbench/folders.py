@@ -16,6 +16,7 @@ Every producer and reader takes the names from here. Standard library only (and 
 from __future__ import annotations
 
 import os
+import re
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,6 +163,62 @@ def find_prediction(pred_dir: str | Path, sample_id: str) -> Path | None:
     if state.exists() or state.is_symlink():
         check_video_file(state, what="world-state file")
     return found[0]
+
+
+# -- several samples (generations) per example ----------------------------------------------------
+# The one naming rule: sample k of example <id> is ``<id>.s<k>.<ext>`` (k = 0, 1, ...; no leading zeros), and
+# ``<id>.<ext>`` is read as sample 0 (one sample per example, as always). ``rigidbench predict --samples K``
+# writes sample 0 as ``<id>.<ext>`` and the others as ``<id>.s<k>.<ext>``, so raising K later pays only for the
+# new samples. The driver's item for sample k is named like its file without the extension (``sample_item``).
+
+SAMPLE_MARK = ".s"
+_SAMPLE_SUFFIX = re.compile(r"\.s(0|[1-9][0-9]*)$")
+
+
+def sample_item(example_id: str, k: int) -> str:
+    """The name of sample ``k`` of ``example_id`` (its file's stem and the stages' item id): ``<id>`` for
+    k = 0, ``<id>.s<k>`` otherwise."""
+    k = int(k)
+    if k < 0:
+        raise ValueError(f"sample index must be >= 0, got {k}")
+    return example_id if k == 0 else f"{example_id}{SAMPLE_MARK}{k}"
+
+
+def find_samples(pred_dir: str | Path, example_id: str) -> dict[int, Path]:
+    """Every sample of ``example_id`` in ``pred_dir``, ``{k: video}`` sorted by k (the naming rule above), each
+    checked as ``find_prediction`` checks one. Both ``<id>.<ext>`` and ``<id>.s0.<ext>``, or one sample in
+    two formats, is an EvaluationError naming the files."""
+    pred_dir = Path(pred_dir)
+    found: dict[int, list[Path]] = {}
+    prefix = f"{example_id}{SAMPLE_MARK}"
+    try:
+        entries = list(os.scandir(pred_dir))
+    except FileNotFoundError:
+        return {}
+    for entry in entries:
+        path = Path(entry.path)
+        if path.suffix.lower() not in VIDEO_EXTENSIONS or not path.name.startswith(example_id):
+            continue
+        stem = path.name[:-len(path.suffix)]
+        if stem == example_id:
+            found.setdefault(0, []).append(path)
+        elif stem.startswith(prefix) and _SAMPLE_SUFFIX.search(stem) and stem[:stem.rfind(SAMPLE_MARK)] == example_id:
+            found.setdefault(int(stem[len(prefix):]), []).append(path)
+    for k, paths in found.items():
+        if len(paths) > 1:
+            names = ", ".join(sorted(p.name for p in paths))
+            raise EvaluationError(f"{example_id}: sample {k} has several videos ({names}); keep one (the naming "
+                                  f"rule: <id>.<ext> or <id>.s0.<ext> is sample 0, <id>.s<k>.<ext> sample k)")
+        check_video_file(paths[0])
+        state = state_path(paths[0])
+        if state.exists() or state.is_symlink():
+            check_video_file(state, what="world-state file")
+    return {k: found[k][0] for k in sorted(found)}
+
+
+def is_sample_stem(stem: str) -> bool:
+    """Whether a file stem names a sample k of some example under the naming rule (``<id>.s<k>``)."""
+    return bool(_SAMPLE_SUFFIX.search(stem))
 
 
 @dataclass(frozen=True)

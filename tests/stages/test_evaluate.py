@@ -182,8 +182,8 @@ from rigidbench.stages import evaluate as runner
 from rigidbench.perception.features import FeatureNets
 from rigidbench.driver import RunOptions
 real = runner.example_readouts
-def slow(sample, inputs, scores, out_dir):
-    summary = real(sample, inputs, scores, out_dir)
+def slow(sample, inputs, scores, out_dir, item=None):
+    summary = real(sample, inputs, scores, out_dir, item)
     if sample.sample_id == "00001":
         pathlib.Path({str(marker)!r}).write_text(str(out_dir))
         time.sleep(120)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from ..errors import UserError
 from ..registry import LazyRegistry
 from .base import (SEED_RULE, FailureMode, FunctionPredictor, Kind, ModelInputs, PredictContext, Prediction, Predictor,
-                   PredictorInfo, example_seed, model_inputs)
+                   PredictorInfo, SAMPLE_SEED_RULE, example_seed, model_inputs, sample_seed)
 from .options import (CosmosOptions, HostedOptions, ModelOptions, WanOptions, audit_options, format_options,
                       legacy_flags, model_options, options_type, parse_model_args, resolve_options)
 
@@ -105,5 +105,5 @@ def failure_modes() -> tuple[str, ...]:
 
 __all__ = ["PREDICTORS", "SEED_RULE", "CosmosOptions", "FailureMode", "FunctionPredictor", "HostedOptions", "Kind",
            "ModelInputs", "ModelOptions", "PredictContext", "Prediction", "Predictor", "PredictorInfo", "WanOptions",
-           "audit_options", "example_seed", "failure_modes", "format_options", "legacy_flags", "load_entry_points",
+           "audit_options", "example_seed", "sample_seed", "SAMPLE_SEED_RULE", "failure_modes", "format_options", "legacy_flags", "load_entry_points",
            "model_inputs", "model_options", "options_type", "parse_model_args", "predictor_info", "resolve_options"]

@@ -53,6 +53,21 @@ def example_seed(base_seed: int, example_id: str) -> int:
     return int.from_bytes(digest[:4], "big") & 0x7FFF_FFFF
 
 
+#: How sample k of an example follows (``predict --samples K``); sample 0's seed is the example's, so K = 1 is today's run.
+SAMPLE_SEED_RULE = ("sample 0: the example's seed; sample k >= 1: the seed of example '<example id>.s<k>' by the "
+                    "same rule")
+
+
+def sample_seed(base_seed: int, example_id: str, k: int) -> int:
+    """The seed of sample ``k`` of example ``example_id`` (``SAMPLE_SEED_RULE``): ``example_seed(base, id)`` for
+    k = 0, so one sample per example is seeded exactly as before; ``example_seed(base, '<id>.s<k>')`` for k >= 1
+    (the sample's item name, ``folders.sample_item``)."""
+    k = int(k)
+    if k < 0:
+        raise ValueError(f"sample index must be >= 0, got {k}")
+    return example_seed(base_seed, example_id if k == 0 else f"{example_id}.s{k}")
+
+
 class Kind(str, enum.Enum):
     FAILURE_MODE = "failure mode"
     LOCAL = "local model"

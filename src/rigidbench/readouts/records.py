@@ -69,15 +69,16 @@ def summary(readouts: dict) -> dict:
     return out
 
 
-def example_readouts(sample, inputs, scores: dict, out_dir: str | Path) -> dict:
+def example_readouts(sample, inputs, scores: dict, out_dir: str | Path, item: str | None = None) -> dict:
     """Compute every readout of one evaluated example from its MetricInputs, write
-    out_dir/examples/<id>.readouts.json and return the compact summary for its score record; ``scores``
+    out_dir/examples/<item>.readouts.json (``item``: the sample's name, ``folders.sample_item``; default the
+    example id) and return the compact summary for its score record; ``scores``
     name -> MetricResult (IdDrift feeds the identity flag). ``out_dir`` is a run folder or a staging folder
     laid out like one (the evaluate stage's, committed into the run folder by the stage driver)."""
     iddrift = scores.get("iddrift")
     ctx = context_from_sample(sample, inputs, None if iddrift is None else iddrift.value)
     readouts = compute_readouts(ctx)
-    path = RunFolder(out_dir).readouts(sample.sample_id)
+    path = RunFolder(out_dir).readouts(item or sample.sample_id)
     write_text(path, json.dumps(to_jsonable({"id": sample.sample_id, "task": sample.task,
                                              "partition": sample.partition, "readouts": readouts}), indent=1))
     return summary(readouts)

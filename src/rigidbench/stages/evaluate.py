@@ -9,6 +9,7 @@ executor and records failures; ``EvaluateWorker`` scores one example into a stag
 
 from __future__ import annotations
 
+import glob
 import logging
 import math
 import time
@@ -28,7 +29,7 @@ from ..evaluation.provenance import run_info
 from ..evaluation.scoring import metric_inputs, score_inputs
 from ..executors import Resources, Shard
 from ..firstframe import compare_first_frames, mismatch_message
-from ..folders import RunFolder, find_prediction, state_path
+from ..folders import RunFolder, find_prediction, sample_item, state_path
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity, unverified_reason
 from ..hashing import digest
 from ..jsonio import read_json, write_json
@@ -348,12 +349,14 @@ def clip_coverage(clip_times_s: np.ndarray, ref_times_s: np.ndarray, fps: float)
 
 def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, staging: Path,
                cache_dir: Path, timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True,
-               allow_short: bool = False, progress: Progress = lambda done, total: None) -> dict:
-    """Decode, check coverage, perceive (cached under ``cache_dir`` by input key ``key``), align and score one
-    example; writes its .npz, .readouts.json and .json under ``staging/examples/`` (a run folder's layout)
-    and returns the record. A clip short of the reference span is refused (EvaluationError) unless
-    ``allow_short``."""
+               allow_short: bool = False, progress: Progress = lambda done, total: None, index: int = 0) -> dict:
+    """Decode, check coverage, perceive (cached under ``cache_dir`` by input key ``key``), align and score
+    sample ``index`` of one example (``pred``: its video); writes its .npz, .readouts.json and .json under
+    ``staging/examples/`` (a run folder's layout), named by the sample's item (``folders.sample_item``: the
+    example id for sample 0), and returns the record (``id``: the example, ``sample``: ``index``). A clip short
+    of the reference span is refused (EvaluationError) unless ``allow_short``."""
     sample_id = sample.sample_id
+    item = sample_item(sample_id, index)
     steps = EvaluateWorker.STEPS
     t0 = time.time()
     ref_times = reference_times(sample.n_frames, sample.fps)
@@ -372,14 +375,14 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     timings["decode_s"] += time.time() - t0
     progress(1, steps)
     t0 = time.time()
-    cache = cache_dir / f"{sample_id}-{backend.name}-{key[:16]}.npz"
+    cache = cache_dir / f"{item}-{backend.name}-{key[:16]}.npz"
     if not getattr(backend, "cache", True):  # cheaper to recompute than to store (gt)
         perceived = backend.perceive(sample, video, pred)
     elif cache.exists():
         perceived = Perception.load(cache)
     else:
         perceived = backend.perceive(sample, video, pred)
-        for old_cache in cache_dir.glob(f"{sample_id}-{backend.name}-*.npz"):
+        for old_cache in cache_dir.glob(f"{glob.escape(item)}-{backend.name}-*.npz"):
             old_cache.unlink()
         perceived.save(cache)
     timings["perception_s"] += time.time() - t0
@@ -390,7 +393,7 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
     inputs = metric_inputs(sample, gen_rgb, aligned, nets, edge_rules=protocol.edge_rules)  # metrics and readouts
     scores = score_inputs(inputs)
     timings["metrics_s"] += time.time() - t0
-    record = {"id": sample_id, "model": model, "task": sample.task, "partition": sample.partition,
+    record = {"id": sample_id, "sample": int(index), "model": model, "task": sample.task, "partition": sample.partition,
               "protocol": protocol.name,
               "frames_compared": int(gen_rgb.shape[0]), **facts, "input_key": key,
               "perception": backend.name,
@@ -399,10 +402,10 @@ def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: st
               "notes": {m: r.note for m, r in scores.items() if r is not None and r.note}}
     out = RunFolder(staging)
     out.examples_dir.mkdir(parents=True, exist_ok=True)
-    record["readouts"] = example_readouts(sample, inputs, scores, staging)
+    record["readouts"] = example_readouts(sample, inputs, scores, staging, item)
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
-    np.savez_compressed(out.arrays(sample_id), **arrays)
-    write_json(out.record(sample_id), record, indent=2, allow_nan=False)  # NaN refused: null is written
+    np.savez_compressed(out.arrays(item), **arrays)
+    write_json(out.record(item), record, indent=2, allow_nan=False)  # NaN refused: null is written
     progress(3, steps)
     return record
