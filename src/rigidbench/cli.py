@@ -13,6 +13,7 @@ from pathlib import Path
 from .atomic import WRITE_ERRNOS, describe_os_error
 from .commands import (Command, data as data_commands, models as model_commands, probing as probe_commands,
                        scoring as scoring_commands, training as train_commands)
+from .commands import envelope as envelope_commands
 from .commands import leaderboard as leaderboard_commands
 from .commands import submitting as submit_commands
 from .context import RunContext
@@ -24,6 +25,7 @@ CONFIG_PATH_ENV = "RIGIDBENCH_CONFIG_PATH"
 
 #: Every command, in the order ``rigidbench --help`` lists them.
 COMMANDS: tuple[Command, ...] = (data_commands.COMMANDS + model_commands.COMMANDS + scoring_commands.COMMANDS
+                                 + envelope_commands.COMMANDS
                                  + train_commands.COMMANDS + probe_commands.COMMANDS + submit_commands.COMMANDS
                                  + leaderboard_commands.COMMANDS)
 

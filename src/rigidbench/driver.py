@@ -17,7 +17,7 @@ The driver (``run_stage``) then:
 2. **decides** per example from its *ledger entry*, ``ROOT/.stages/NAME/<id>.json`` (key, status, error, the
    worker's result): the same key, succeeded, and the output still ``intact`` -> up to date, skipped; else it
    runs again, and the run says why (new, settings or inputs changed, failed before, output missing). An
-   output made before ledgers existed is taken over when the stage's ``adopt`` says it was made this way;
+   output made before ledgers existed is taken over when the stage's ``adopt`` returns it as ``Adopted``;
 3. **runs** the rest through an executor (this process, local child processes, Ray actors, a shard). On
    the executor's side, ``ItemRunner`` gives the worker an empty *staging* folder
    (``ROOT/.stages/NAME/staging/<id>/``; a killed run's leftovers are removed first), and **commits** what
@@ -157,6 +157,16 @@ class Redo(str):
         return Redo, (self.why, self.detail)
 
 
+@dataclass(frozen=True)
+class Adopted:
+    """What ``Stage.adopt`` found: an output made before ledgers existed that counts as made with the example's
+    key. ``result``: the ledger entry's result (as a worker's ``ItemResult.result``); ``how``: how it was found
+    (what the log says, e.g. "a bundle rendered at this preset")."""
+
+    result: dict
+    how: str
+
+
 class Key(str):
     """An example's key (the digest the ledger records) with ``facts``: what computing it found that the
     stage needs later (content hashes, a file's path), JSON values. ``key()`` stays pure: the facts travel in
@@ -229,10 +239,10 @@ class Stage(ABC):
         a stage that checks more calls this too."""
         return outputs_intact(self.root, read_ledger(self.root, self.name, item_id))
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> "dict | Redo | None":
-        """An output made before ledgers existed that counts as made with ``key``: its result dict (the
-        ledger entry is then written for it); or a ``Redo`` saying why an earlier output there does not count
-        (it is made again, and the report says why); or None (nothing there)."""
+    def adopt(self, item_id: str, payload: Any, key: str) -> "Adopted | Redo | None":
+        """An output made before ledgers existed (there is no ledger entry): ``Adopted`` when it counts as made
+        with ``key`` (its ledger entry is then written from it); a ``Redo`` saying why an earlier output there
+        does not count (it is made again, and the report says why); None: nothing there to take over."""
         return None
 
     def prepare(self, todo: list[str]) -> None:
@@ -611,14 +621,20 @@ def plan(stage: Stage, ids: Sequence[str], items: Mapping[str, Any], report: Sta
         why = None
         if entry is None:
             adopted = stage.adopt(item_id, payload, key)
-            if isinstance(adopted, str):  # an earlier output that does not count, and why
-                why = adopted if isinstance(adopted, Redo) else Redo(Why.CHANGED, adopted)
-            elif adopted is not None:
+            if isinstance(adopted, Redo):  # an earlier output that does not count, and why
+                why = adopted
+            elif isinstance(adopted, Adopted):
+                log.info("%s: %s %s is taken over from before ledgers: %s", stage.name, stage.unit, item_id,
+                         adopted.how)
                 if write:
-                    write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted, adopted=True)
+                    write_ledger(stage.root, stage.name, item_id, key, "succeeded", result=adopted.result,
+                                 adopted=True)
                 report.reused.append(item_id)
-                report.results[item_id] = adopted
+                report.results[item_id] = adopted.result
                 continue
+            elif adopted is not None:
+                raise TypeError(f"{type(stage).__name__}.adopt returned a {type(adopted).__name__}: it returns an "
+                                "Adopted, a Redo or None")
         elif entry.get("key") != key:
             why = Redo(Why.CHANGED)
         elif entry.get("status") != "succeeded":
@@ -701,13 +717,23 @@ def _finishing(stage: Stage) -> Iterator[None]:
         lock.release()
 
 
-def _planned(stage: Stage, run: RunOptions, write: bool) -> tuple[StageReport, list[dict]]:
-    """Phases 1 to 4 of a run: the candidates (``items``), the selection (an unknown id is a UserError naming
-    ``where``), the stage's ``check`` of the selection, the plan (keys, ledger, adopted outputs; written only
-    with ``write``). Returns the report so far and the tasks still to run."""
-    items = stage.items()
+def validate_selection(stage: Stage, run: RunOptions = RunOptions(), items: Mapping[str, Any] | None = None
+                       ) -> list[str]:
+    """Phases 1 to 3 of a run: the candidates (``items``, or the stage's), the selection of them (an unknown id
+    is a UserError naming ``where``) and the stage's ``check`` of it; returns the selected ids. ``run_stage``
+    starts with it; a facade with heavy work to do before its stage runs (``probe intervene`` fits its bases
+    first) calls it before that work, so that a wrong id fails before anything heavy loads."""
+    items = stage.items() if items is None else items
     ids = run.selection.apply(list(items), stage.where, stage.example_of)
     stage.check(ids)
+    return ids
+
+
+def _planned(stage: Stage, run: RunOptions, write: bool) -> tuple[StageReport, list[dict]]:
+    """Phases 1 to 4 of a run: the selection (``validate_selection``), then the plan (keys, ledger, adopted
+    outputs; written only with ``write``). Returns the report so far and the tasks still to run."""
+    items = stage.items()
+    ids = validate_selection(stage, run, items)
     report = StageReport(stage.name, stage.root, selected=ids, unit=stage.unit)
     return report, plan(stage, ids, items, report, write=write)
 
@@ -856,7 +882,7 @@ def run_stage(stage: Stage, run: RunOptions = RunOptions(),
     return report
 
 
-__all__ = ["ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "Key", "LEDGER_DIR", "Redo", "RunOptions",
+__all__ = ["Adopted", "ELSEWHERE", "ItemLock", "ItemResult", "ItemRunner", "Key", "LEDGER_DIR", "Redo", "RunOptions",
            "Selection", "Stage", "StageReport", "StageWorker", "Why", "commit", "fresh_staging", "ledger_outcomes",
            "ledger_path", "lock_path", "output_kinds", "outputs_intact", "plan", "plan_only", "read_ledger",
-           "run_stage", "stage_dir", "staging_path", "write_ledger"]
+           "run_stage", "stage_dir", "staging_path", "validate_selection", "write_ledger"]

@@ -382,6 +382,16 @@ class ProcessExecutor(Executor):
         return out
 
 
+def usable_cores(at_most: int | None = None) -> int:
+    """The cores this process may run on (its CPU affinity where the system tells it), at least 1 and at most
+    ``at_most``: how many threads a step that releases the GIL (frame decoding, image filters) splits over."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores if at_most is None else min(cores, at_most))
+
+
 def make_executor(name: str = "local", *, ray_address: str | None = None, threads: int = 1,
                   workers: int | None = None) -> Executor:
     """The executor ``--executor`` names ("local", "processes" or "ray")."""

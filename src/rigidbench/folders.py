@@ -158,11 +158,17 @@ def find_prediction(pred_dir: str | Path, sample_id: str) -> Path | None:
         raise EvaluationError(f"{sample_id}: several predictions ({', '.join(p.name for p in found)}); keep one")
     if not found:
         return None
-    check_video_file(found[0])
-    state = state_path(found[0])
+    return check_prediction(found[0])
+
+
+def check_prediction(path: Path) -> Path:
+    """``path``, a prediction's video, once it and the world-state file beside it (where there is one) are
+    checked as ``check_video_file`` checks a file (VideoError otherwise)."""
+    check_video_file(path)
+    state = state_path(path)
     if state.exists() or state.is_symlink():
         check_video_file(state, what="world-state file")
-    return found[0]
+    return path
 
 
 # -- several samples (generations) per example ----------------------------------------------------
@@ -188,6 +194,16 @@ def find_samples(pred_dir: str | Path, example_id: str) -> dict[int, Path]:
     """Every sample of ``example_id`` in ``pred_dir``, ``{k: video}`` sorted by k (the naming rule above), each
     checked as ``find_prediction`` checks one. Both ``<id>.<ext>`` and ``<id>.s0.<ext>``, or one sample in
     two formats, is an EvaluationError naming the files."""
+    found = sample_files(pred_dir, example_id)
+    for path in found.values():
+        check_prediction(path)
+    return found
+
+
+def sample_files(pred_dir: str | Path, example_id: str) -> dict[int, Path]:
+    """``find_samples`` without checking the files (a stage that checks each sample on its own, so that one
+    sample that is not a regular file fails alone). Both ``<id>.<ext>`` and ``<id>.s0.<ext>``, or one sample in
+    two formats, is an EvaluationError naming the files."""
     pred_dir = Path(pred_dir)
     found: dict[int, list[Path]] = {}
     prefix = f"{example_id}{SAMPLE_MARK}"
@@ -209,16 +225,19 @@ def find_samples(pred_dir: str | Path, example_id: str) -> dict[int, Path]:
             names = ", ".join(sorted(p.name for p in paths))
             raise EvaluationError(f"{example_id}: sample {k} has several videos ({names}); keep one (the naming "
                                   f"rule: <id>.<ext> or <id>.s0.<ext> is sample 0, <id>.s<k>.<ext> sample k)")
-        check_video_file(paths[0])
-        state = state_path(paths[0])
-        if state.exists() or state.is_symlink():
-            check_video_file(state, what="world-state file")
     return {k: found[k][0] for k in sorted(found)}
 
 
 def is_sample_stem(stem: str) -> bool:
     """Whether a file stem names a sample k of some example under the naming rule (``<id>.s<k>``)."""
     return bool(_SAMPLE_SUFFIX.search(stem))
+
+
+def split_sample_item(stem: str) -> tuple[str, int]:
+    """(example id, k) of a sample's name (``sample_item``'s inverse): ``<id>.s<k>`` -> (id, k), else (stem, 0).
+    For a file whose record cannot be read; a readable record says its ``id`` and ``sample`` itself."""
+    match = _SAMPLE_SUFFIX.search(stem)
+    return (stem[:match.start()], int(match.group(1))) if match else (stem, 0)
 
 
 @dataclass(frozen=True)
@@ -302,5 +321,12 @@ class RunFolder:
         return self.examples_dir / f"{sample_id}{READOUTS_SUFFIX}"
 
     def records(self) -> list[Path]:
-        """The score records, sorted (``<id>.json``, not ``<id>.readouts.json`` or other ``<id>.x.json``)."""
-        return sorted(p for p in self.examples_dir.glob("*.json") if "." not in p.stem)
+        """The score records, sorted: ``<id>.json`` and the samples' ``<id>.s<k>.json`` (not ``<id>.readouts.json``
+        or other ``<id>.x.json``). A record's ``id`` and ``sample`` say which example and sample it scored."""
+        return sorted(p for p in self.examples_dir.glob("*.json") if _record_stem(p.stem))
+
+
+def _record_stem(stem: str) -> bool:
+    """Whether ``stem`` names a score record: ``<id>`` or ``<id>.s<k>`` with k >= 1 (as ``sample_item`` names)."""
+    example, k = split_sample_item(stem)
+    return "." not in example and sample_item(example, k) == stem

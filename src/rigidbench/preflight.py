@@ -7,6 +7,10 @@ example, an undecodable file, a clip that does not cover the reference span, dup
 one example, a first frame that is not the reference's first frame, a reference folder still in the
 published archive's layout, a damaged reference bundle) give a non-zero exit code; warnings (extra files, an aspect ratio that resizing
 will distort, header frame rate disagreeing with the timestamps) do not.
+
+Several samples (generations) per example follow the one naming rule (``folders.sample_item``): ``<id>.s<k>.<ext>``
+is sample k of example ``<id>`` and ``<id>.<ext>`` is sample 0, so ``<id>.mp4`` beside ``<id>.s0.mp4`` is an error
+naming both. Every sample is checked as one video is; the report says how many samples per example it found.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import numpy as np
 from rigidbench.benchmark import find_published_layout, is_published_metadata, published_layout_message
 from rigidbench.firstframe import (MISMATCH_KIND, compare_first_frames, mismatch_message, read_first_frame,
                                    read_reference_first_frame)
-from rigidbench.folders import GENERATION_FILE, METADATA_FILE, STATE_SUFFIX
+from rigidbench.folders import GENERATION_FILE, METADATA_FILE, SAMPLE_MARK, STATE_SUFFIX, is_sample_stem
 from rigidbench.groundtruth.bundle import bundle_dirs, check_bundle, repair_hint
 from rigidbench.video import (REFERENCE_FPS, REFERENCE_FRAMES, REFERENCE_SIZE, VIDEO_EXTENSIONS, VideoError,
                               VideoInfo, aligned_length, check_decodable, probe_video, reference_times)
@@ -74,7 +78,9 @@ class ValidationReport:
     data_dir: Path
     references: dict[str, ReferenceSpec] = field(default_factory=dict)
     files: dict[Path, VideoInfo] = field(default_factory=dict)
-    matched: dict[str, Path] = field(default_factory=dict)
+    matched: dict[str, Path] = field(default_factory=dict)  # example -> the video of its first sample read
+    #: example -> {sample index: video} of every sample read (one sample per example: {0: <id>.<ext>})
+    samples: dict[str, dict[int, Path]] = field(default_factory=dict)
     issues: list[Issue] = field(default_factory=list)
 
     def add(self, severity: str, kind: str, message: str, example_id: str | None = None,
@@ -99,6 +105,11 @@ class ValidationReport:
     @property
     def ok(self) -> bool:
         return not self.errors
+
+    def samples_per_example(self) -> tuple[int, int] | None:
+        """(fewest, most) samples read per example that has any; None when none has."""
+        counts = [len(found) for found in self.samples.values() if found]
+        return (min(counts), max(counts)) if counts else None
 
 
 def read_reference_specs(data_dir: Path, report: ValidationReport, *, ref_fps: float, ref_frames: int) -> None:
@@ -147,9 +158,24 @@ def check_reference(bundle_dir: Path, report: ValidationReport) -> None:
                    f"{'; '.join(problems[:3])}{more}; {repair_hint(bundle_dir)}", bundle_dir.name, bundle_dir)
 
 
-def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, list[Path]], dict[str, list[Path]]]:
-    """Groups pred_dir entries by expected id: (videos, other files such as sidecars); strangers become warnings."""
-    videos: dict[str, list[Path]] = {}
+def sample_of_stem(stem: str, references: Mapping[str, Any]) -> tuple[str, int] | None:
+    """(example id, sample index) a file stem names under the naming rule: ``<id>`` is sample 0, ``<id>.s<k>``
+    sample k (an example id that itself looks like ``x.s1`` is that example); None for no example of
+    ``references``."""
+    if stem in references:
+        return stem, 0
+    if is_sample_stem(stem):
+        example, _, k = stem.rpartition(SAMPLE_MARK)
+        if example in references:
+            return example, int(k)
+    return None
+
+
+def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, dict[int, list[Path]]],
+                                                                   dict[str, list[Path]]]:
+    """Groups pred_dir entries by expected id: (videos by example and sample index, other files such as
+    sidecars by example); strangers become warnings."""
+    videos: dict[str, dict[int, list[Path]]] = {}
     others: dict[str, list[Path]] = {}
     for entry in sorted(pred_dir.iterdir()):
         if entry.name.startswith("."):
@@ -158,14 +184,25 @@ def match_files(pred_dir: Path, report: ValidationReport) -> tuple[dict[str, lis
             continue  # world state written by built-in predictors beside their videos
         if entry.name in RUN_FILES:
             continue  # written by `rigidbench predict` beside the videos
-        if entry.stem not in report.references:
+        found = sample_of_stem(entry.stem, report.references)
+        if found is None:
             report.add(WARNING, "extra", f"{entry.name}: '{entry.stem}' is not an example id in the data "
-                       "directory; ignored", None, entry)
+                       "directory (nor <id>.s<k>, sample k of one); ignored", None, entry)
         elif entry.suffix.lower() in VIDEO_EXTENSIONS:  # a FIFO or device so named is refused unread (probe)
-            videos.setdefault(entry.stem, []).append(entry)
+            videos.setdefault(found[0], {}).setdefault(found[1], []).append(entry)
         else:
-            others.setdefault(entry.stem, []).append(entry)  # e.g. <id>.json written beside the clip
+            others.setdefault(found[0], []).append(entry)  # e.g. <id>.json written beside the clip
     return videos, others
+
+
+def duplicate_message(example_id: str, k: int, paths: list[Path]) -> str:
+    """The error for several files of one sample: both names of sample 0, or one sample in several formats."""
+    names = ", ".join(p.name for p in paths)
+    if k == 0 and any(p.stem == example_id for p in paths) and any(p.stem != example_id for p in paths):
+        return (f"{example_id}: {names} are both sample 0 (<id>.<ext> is read as sample 0, the same as "
+                f"<id>.s0.<ext>); keep one, or rename {example_id}.s0 to the next free sample number")
+    which = f"sample {k} of {example_id}" if k or any(p.stem != example_id for p in paths) else example_id
+    return f"{which}: {len(paths)} files ({names}); keep exactly one"
 
 
 def check_file(info: VideoInfo, ref: ReferenceSpec, report: ValidationReport) -> None:
@@ -214,29 +251,45 @@ def validate_predictions(pred_dir: str | Path, data_dir: str | Path, *, ref_fps:
         return report
     videos, others = match_files(pred_dir, report)
     for example_id, ref in report.references.items():
-        paths = videos.get(example_id, [])
-        if not paths:
+        by_sample = videos.get(example_id, {})
+        if not by_sample:
             unread = [p.name for p in others.get(example_id, [])]
             hint = (f" (found {', '.join(unread)}, not a video extension we read: use one of "
                     f"{', '.join(VIDEO_EXTENSIONS)})" if unread else "")
             report.add(ERROR, "missing", f"{example_id}: no prediction video in {pred_dir}{hint}", example_id)
             continue
-        if len(paths) > 1:
-            report.add(ERROR, "duplicate", f"{example_id}: {len(paths)} files "
-                       f"({', '.join(p.name for p in paths)}); keep exactly one", example_id)
-        for path in paths:
-            try:
-                info = probe_video(path)
-                check_decodable(path)
-            except VideoError as exc:
-                report.add(ERROR, "undecodable", f"{path.name}: {exc.reason}", example_id, path)
-                continue
-            report.files[path] = info
-            report.matched.setdefault(example_id, path)
-            check_file(info, ref, report)
-            if first_frames:
-                check_first_frame_of(path, ref, data_dir, report)
+        for k, paths in sorted(by_sample.items()):
+            if len(paths) > 1:
+                report.add(ERROR, "duplicate", duplicate_message(example_id, k, paths), example_id)
+            for path in paths:
+                try:
+                    info = probe_video(path)
+                    check_decodable(path)
+                except VideoError as exc:
+                    report.add(ERROR, "undecodable", f"{path.name}: {exc.reason}", example_id, path)
+                    continue
+                report.files[path] = info
+                report.matched.setdefault(example_id, path)
+                report.samples.setdefault(example_id, {}).setdefault(k, path)
+                check_file(info, ref, report)
+                if first_frames:
+                    check_first_frame_of(path, ref, data_dir, report)
+    check_sample_counts(report)
     return report
+
+
+def check_sample_counts(report: ValidationReport) -> None:
+    """A warning when examples have different numbers of samples (each is scored by its own samples' mean, so
+    an example with fewer weighs the same but is known less precisely)."""
+    span = report.samples_per_example()
+    if span is None or span[0] == span[1]:
+        return
+    counts: dict[int, int] = {}
+    for found in report.samples.values():
+        counts[len(found)] = counts.get(len(found), 0) + 1
+    spread = ", ".join(f"{n} with {k}" for k, n in sorted(counts.items()))
+    report.add(WARNING, "uneven_samples", f"examples have different numbers of samples ({spread}); each example "
+               "is scored by the mean of its own samples")
 
 
 def check_first_frame_of(path: Path, ref: ReferenceSpec, data_dir: Path, report: ValidationReport) -> None:
@@ -268,9 +321,15 @@ def _reference_first_frame(bundle_dir: Path) -> np.ndarray | None:
 def format_report(report: ValidationReport) -> str:
     """Returns the report as plain text: a summary, one line per file, then errors and warnings."""
     n_expected = len(report.references)
-    lines = [f"predictions: {report.pred_dir}", f"reference:   {report.data_dir} ({n_expected} samples)",
+    lines = [f"predictions: {report.pred_dir}", f"reference:   {report.data_dir} ({n_expected} examples)",
              f"found {len(report.matched)}/{n_expected} examples, {len(report.missing)} missing, "
-             f"{len(report.errors)} errors, {len(report.warnings)} warnings", ""]
+             f"{len(report.errors)} errors, {len(report.warnings)} warnings"]
+    span = report.samples_per_example()
+    if span is not None and span[1] > 1:
+        per = f"{span[0]}" if span[0] == span[1] else f"{span[0]} to {span[1]}"
+        lines.append(f"samples per example: {per} ({len(report.files)} videos read; "
+                     "<id>.<ext> is sample 0, <id>.s<k>.<ext> sample k)")
+    lines.append("")
     if report.files:
         lines.append(f"{'file':<32} {'codec':<8} {'size':>11} {'fps hdr':>8} {'fps ts':>8} {'frames':>6} "
                      f"{'last t':>7}")

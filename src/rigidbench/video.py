@@ -348,9 +348,17 @@ def align_frames(frames: Iterable[tuple[float, np.ndarray]], ref_times_s: np.nda
     return out if k == len(ref) else out[:k].copy()
 
 
-def align_video(video: Video, ref_times_s: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
-    """video: decoded clip; ref_times_s (K,) s; size (W,H) or None (keep). Returns (K',H,W,3) uint8; see align_frames."""
-    return align_frames(zip(video.times_s.tolist(), video.frames), ref_times_s, size)
+def align_video(video: Video, ref_times_s: np.ndarray, size: tuple[int, int] | None = None,
+                copy: bool = True) -> np.ndarray:
+    """video: decoded clip; ref_times_s (K,) s; size (W,H) or None (keep). Returns (K',H,W,3) uint8; see align_frames.
+    ``copy=False``: where the clip's first K frame times are the reference times, bit for bit, at the size asked
+    for (alignment then returns its frames unchanged), the first K of ``video.frames`` themselves (a view)."""
+    ref = np.asarray(ref_times_s, dtype=np.float64)
+    frames = video.frames
+    if (not copy and size in (None, (frames.shape[2], frames.shape[1])) and 0 < len(ref) <= len(video.times_s)
+            and np.array_equal(np.asarray(video.times_s[:len(ref)], np.float64), ref)):
+        return frames[:len(ref)]
+    return align_frames(zip(video.times_s.tolist(), frames), ref_times_s, size)
 
 
 def read_aligned(path: str | Path, ref_times_s: np.ndarray,
@@ -411,14 +419,18 @@ class _FrameBuffer:
         self.n = 0
 
     def append(self, frame: np.ndarray) -> None:
+        self.slot(frame.shape)[...] = frame
+
+    def slot(self, shape: tuple[int, ...]) -> np.ndarray:
+        """The next frame's place, (H,W,3) uint8, counted as appended: the caller writes the frame into it."""
         if self.data is None:
-            self.data = np.empty((self.capacity_hint,) + frame.shape, dtype=np.uint8)
+            self.data = np.empty((self.capacity_hint,) + tuple(shape), dtype=np.uint8)
         elif self.n == len(self.data):
             grown = np.empty((2 * len(self.data),) + self.data.shape[1:], dtype=np.uint8)
             grown[: self.n] = self.data
             self.data = grown
-        self.data[self.n] = frame
         self.n += 1
+        return self.data[self.n - 1]
 
     def result(self) -> np.ndarray:
         if self.data is None:
@@ -549,7 +561,10 @@ def read_video_opencv(path: str | Path, *, fps: float | None = None, until_s: fl
                 break
             if buffer.data is not None and bgr.shape != buffer.data.shape[1:]:
                 raise VideoError(path, f"frame {buffer.n} is {bgr.shape[1]}x{bgr.shape[0]}, unlike the first frame")
-            buffer.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+            slot = buffer.slot(bgr.shape)
+            converted = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=slot)  # into the buffer, without a copy
+            if converted is not slot:  # (OpenCV allocated its own)
+                slot[...] = converted
             if until_s is not None and _reached(buffer.n - 1, rate, until_s):
                 break
     finally:

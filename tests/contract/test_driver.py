@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from rigidbench.driver import (ItemRunner, Redo, RunOptions, Selection, StageReport, Why, commit, ledger_path, read_ledger,
-                               run_stage, staging_path)
+from rigidbench.driver import (Adopted, ItemRunner, Redo, RunOptions, Selection, StageReport, Why, commit, ledger_path,
+                               read_ledger, run_stage, staging_path, validate_selection)
 from rigidbench.errors import UserError
 from rigidbench.executors import LocalExecutor, ProcessExecutor, Shard
 
@@ -148,8 +148,16 @@ class LegacyToyStage(ToyStage):
         if not path.exists():
             return None
         held = path.read_text()
-        return {"value": int(held)} if held == str(payload["n"] * self.factor) else \
-            Redo(Why.CHANGED, f"the old output holds {held}")
+        if held == str(payload["n"] * self.factor):
+            return Adopted({"value": int(held)}, f"{path} holds the right value")
+        return Redo(Why.CHANGED, f"the old output holds {held}")
+
+
+class UntypedLegacyStage(ToyStage):
+    """An ``adopt`` that returns a bare dict, as adopt did before its outcomes were typed."""
+
+    def adopt(self, item_id, payload, key):
+        return {"value": 0}
 
 
 def test_outputs_from_before_ledgers_are_adopted_or_redone_with_the_reason(tmp_path):
@@ -161,7 +169,27 @@ def test_outputs_from_before_ledgers_are_adopted_or_redone_with_the_reason(tmp_p
     assert report.ran == ["b", "c", "d"] and report.redone["b"].why is Why.CHANGED
     assert report.redone == {"b": "its inputs or settings changed (the old output holds 99)"}
     assert read_ledger(tmp_path, "toy", "a")["adopted"] is True
+    assert read_ledger(tmp_path, "toy", "a")["result"] == {"value": 2}
     assert outputs(tmp_path)["out/b.txt"] == "4"
+
+
+def test_an_adopt_outcome_that_is_not_typed_is_a_bug_not_an_output(tmp_path):
+    with pytest.raises(TypeError, match="UntypedLegacyStage.adopt returned a dict: it returns an Adopted, a Redo"):
+        run_stage(UntypedLegacyStage(tmp_path, PAYLOADS), RunOptions(progress=False))
+    assert read_ledger(tmp_path, "toy", "a") is None and not (tmp_path / "out").exists()
+
+
+def test_validate_selection_fails_an_unknown_id_before_any_key_or_check(tmp_path, monkeypatch):
+    """What a facade calls before its heavy work (probe intervene's bases): the selected ids in the stage's order, the
+    stage's check of them; an unknown id is the driver's one error, before ``check`` or ``key`` runs."""
+    stage, checked = ToyStage(tmp_path, PAYLOADS), []
+    monkeypatch.setattr(stage, "check", checked.append)
+    monkeypatch.setattr(stage, "key", lambda *args: pytest.fail("validate_selection computed a key"))
+    assert validate_selection(stage, RunOptions(Selection.of(["c", "a"]))) == ["a", "c"]
+    assert checked == [["a", "c"]]
+    with pytest.raises(UserError, match="unknown example id"):
+        validate_selection(stage, RunOptions(Selection.of(["a", "zz"])))
+    assert checked == [["a", "c"]] and not (tmp_path / ".stages").exists()
 
 
 def test_every_stage_reports_in_the_same_words(tmp_path, capsys):

@@ -14,10 +14,8 @@ import pytest
 
 from fixtures.children import kill_when
 from fixtures.stage_cases import CASES
-from rigidbench.driver import ledger_path, read_ledger, staging_path
+from rigidbench.driver import Why, ledger_path, read_ledger, staging_path
 from rigidbench.errors import UserError
-
-CHANGED = "its inputs or settings changed"
 
 
 @pytest.fixture(scope="module", params=sorted(CASES))
@@ -60,7 +58,7 @@ def test_a_changed_setting_makes_every_item_again(case, tmp_path):
     case.run(inputs, out)
     keys = ledger_keys(case, out)
     report = case.run(inputs, out, **case.changed)
-    assert {i: str(why)[:len(CHANGED)] for i, why in report.redone.items()} == {i: CHANGED for i in case.ids}
+    assert {i: why.why for i, why in report.redone.items()} == {i: Why.CHANGED for i in case.ids}
     assert all(new != keys[i] for i, new in ledger_keys(case, out).items())
     clean = tmp_path / "clean"
     case.run(inputs, clean, **case.changed)

@@ -219,6 +219,9 @@ BAD_ARGUMENTS = [
     ("zero", "probe fit --acts {dir} --out {new} --epochs 0", "--epochs"),
     ("zero", "probe intervene --acts {dir} --cache {dir} --out {new} --resamples 0", "--resamples"),
     ("zero", "leaderboard {dir} --out {new} --resamples 0", "--resamples"),
+    ("zero", "envelope --data {data} --out {new} --twins 1", "--twins"),
+    ("negative", "envelope --data {data} --out {new} --scale -0.5", "--scale"),
+    ("file for folder", "envelope --data {data} --out {file}", "--out"),
     # empty
     ("empty", "import {dir} --data {new} --ids ''", "--ids"),
     ("empty", "simulate --split eval --ids ,,,", "--ids"),

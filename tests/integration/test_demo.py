@@ -21,7 +21,8 @@ def _row(text: str, model: str) -> list[str]:
 
 def test_reduced_demo_renders_scores_and_reports(tmp_path, capsys):
     out = tmp_path / "demo"
-    status = main(["demo", "--out", str(out), "--quality", "test", "--modes", "reference", "static", "gamma"])
+    status = main(["demo", "--out", str(out), "--quality", "test", "--modes", "reference", "static", "gamma",
+                   "camera-shake"])
     text = capsys.readouterr().out
     assert status == 0, text
     # One rendered example per task.
@@ -34,9 +35,23 @@ def test_reduced_demo_renders_scores_and_reports(tmp_path, capsys):
     assert float(ref[0]) == 1.0 and 0.99 < float(ref[6]) < 1.0
     assert float(static[0]) < 0.9
     assert float(gamma[0]) == 1.0 and float(gamma[6]) < float(ref[6]) - 0.05
-    for mode in ("reference", "static", "gamma"):
+    for mode in ("reference", "static", "gamma", "camera-shake"):
         results = json.loads((out / "runs" / mode / "results.json").read_text())
         assert results["n_examples"] == 5 and not results["failed"]
+    # camera-shake is generated twice per example (different shakes), and its seed spread is printed
+    shaken = json.loads((out / "runs" / "camera-shake" / "results.json").read_text())
+    assert shaken["samples"]["samples_per_example"] == {"min": 2, "max": 2} and shaken["n_examples"] == 5
+    assert len(list((out / "predictions" / "camera-shake").glob("*.s1.mp4"))) == 5
+    assert shaken["samples"]["metrics"]["ate"]["seed_std"] > 0  # two different shakes, not one copied
+    assert "camera-shake: 2 samples per example" in text
+    # The 4-twin geometry-only envelope: the reference inside on every example, the frozen clip outside on most
+    envelope = json.loads((out / "envelope" / "envelope.json").read_text())
+    assert envelope["twins"] == 4 and envelope["geometry_only"] and len(envelope["examples"]) == 5
+    ref_env = json.loads((out / "runs" / "reference" / "results.json").read_text())["envelope"]["overall"]
+    static_env = json.loads((out / "runs" / "static" / "results.json").read_text())["envelope"]["overall"]
+    assert all(ref_env[m]["inside"] == 1.0 for m in ("iou", "ate", "ate3d")), ref_env
+    assert all(static_env[m]["inside"] < 0.5 for m in ("iou", "ate")), static_env
+    assert re.search(r"^\s+reference\s+1\.00\s+1\.00\s+1\.00$", text, re.M), text
     # Skipped measurements are explained, and the report's path is printed and exists.
     for metric in json.loads((out / "runs" / "reference" / "results.json").read_text())["skipped_metrics"]:
         assert re.search(rf"^\s+{metric}: \S", text, re.M), f"no reason printed for skipped {metric}"

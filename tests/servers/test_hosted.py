@@ -28,7 +28,8 @@ from rigidbench.config import PACKAGE_CONFIG_DIR  # noqa: E402
 from rigidbench.context import RunContext  # noqa: E402
 from rigidbench.errors import ConfigError, PredictionError, UserError  # noqa: E402
 from rigidbench.folders import GENERATION_FILE  # noqa: E402
-from rigidbench.predictors import PREDICTORS, SEED_RULE, Kind, PredictContext, example_seed  # noqa: E402
+from rigidbench.predictors import (PREDICTORS, SAMPLE_SEED_RULE, SEED_RULE, Kind, PredictContext,  # noqa: E402
+                                   example_seed, sample_seed)
 from rigidbench.predictors.hosted import HostedPredictor, load_hosted_config, parse_models  # noqa: E402
 from rigidbench.predictors.replicate import (CallStats, ClientSettings, Deadline, ReplicateClient,  # noqa: E402
                                             StopRequested)
@@ -85,10 +86,10 @@ def config(tmp_path):
     return write_config(tmp_path)
 
 
-def run(name, split, out, config_dir, dry_run=False, **options):
+def run(name, split, out, config_dir, dry_run=False, samples=1, **options):
     options.setdefault("concurrency", 2)
     ctx = PredictContext(RunContext(config_dirs=(config_dir,)), seed=7, options=options)
-    return predict(name, split, out, ctx, dry_run=dry_run, run=RunOptions(progress=False))
+    return predict(name, split, out, ctx, dry_run=dry_run, samples=samples, run=RunOptions(progress=False))
 
 
 def generation(out) -> dict:
@@ -173,11 +174,17 @@ def test_a_first_frame_too_large_for_a_data_uri_is_uploaded_as_png(server, confi
     assert "HTTP 413" in summary.failed["00000"] and len(server.uploads) == 1
 
 
-def test_a_model_that_takes_a_seed_gets_each_examples_own(server, tmp_path):
+def seeded_veo(tmp_path) -> Path:
+    """A --config directory in which veo-3.1 is sent each prediction's seed as its input "seed"."""
     config = write_config(tmp_path)
     data = yaml.safe_load((config / "models.yaml").read_text())
     data["models"]["veo-3.1"]["seed_field"] = "seed"
     (config / "models.yaml").write_text(yaml.safe_dump(data))
+    return config
+
+
+def test_a_model_that_takes_a_seed_gets_each_examples_own(server, tmp_path):
+    config = seeded_veo(tmp_path)
     out = tmp_path / "out"
     assert not run("veo-3.1", make_split(tmp_path / "eval", 2), out, config).failed  # base seed 7
     sent = {json.loads(r.body)["input"]["prompt"].split("number ")[1][0]: json.loads(r.body)["input"]["seed"]
@@ -395,6 +402,82 @@ def test_an_output_deleted_by_replicate_is_paid_for_again_only_when_asked(server
     assert len(server.creations()) == 2 and "deleted its output" in caplog.text
 
 
+# -- several samples per example (--samples K): each is a paid prediction of its own ---------------------------
+
+SAMPLES = ["00000", "00000.s1", "00001", "00001.s1"]
+
+
+def test_k_samples_are_paid_once_each_and_a_rerun_pays_nothing(server, config, tmp_path, capsys):
+    split, out = make_split(tmp_path / "eval", 2), tmp_path / "out"
+    assert run("veo-3.1", split, out, config).succeeded == ["00000", "00001"] and len(server.created) == 2
+    capsys.readouterr()
+    planned = run("veo-3.1", split, out, config, dry_run=True, samples=2)  # only the new samples are paid for
+    assert planned.facts.planned == ["00000.s1", "00001.s1"] and planned.facts.paid_calls == 2
+    assert "the service's own randomness" in planned.facts.note and len(server.created) == 2
+    summary = run("veo-3.1", split, out, config, samples=2)
+    assert summary.reused == ["00000", "00001"] and summary.ran == ["00000.s1", "00001.s1"] and not summary.failed
+    assert len(server.paid("number 0")) == 2 and len(server.paid("number 1")) == 2 and len(server.created) == 4
+    held = {i: json.loads((out / ".hosted" / f"{i}.json").read_text())["prediction_id"] for i in SAMPLES}
+    assert sorted(held.values()) == sorted(server.created)  # one paid prediction per sample, none shared
+    first, second = server.creations("number 0")
+    assert first.json == second.json and "seed" not in first.json["input"]  # no seed: the same request twice
+    doc = generation(out)
+    assert {i: (r["sample"], r["prediction_id"]) for i, r in doc["examples"].items()} == \
+           {i: (1 if ".s1" in i else 0, held[i]) for i in SAMPLES}
+    assert "no seed" in doc["samples"]["seeds"] and doc["samples"]["per_example"] == 2
+    assert sorted(p.name for p in out.glob("*.mp4")) == [f"{i}.mp4" for i in SAMPLES]
+    requests = len(server.requests)
+    again = run("veo-3.1", split, out, config, samples=2)
+    assert again.reused == SAMPLES and len(server.requests) == requests  # nothing paid, not even a poll
+
+
+def test_a_seeded_model_sends_each_sample_its_own_seed(server, tmp_path):
+    config = seeded_veo(tmp_path)
+    out = tmp_path / "out"
+    assert not run("veo-3.1", make_split(tmp_path / "eval", 1), out, config, samples=3).failed
+    sent = sorted(c.json["input"]["seed"] for c in server.creations())
+    assert sent == sorted(sample_seed(7, "00000", k) for k in range(3)) and len(set(sent)) == 3
+    assert sample_seed(7, "00000", 0) == example_seed(7, "00000")
+    doc = generation(out)
+    assert [doc["examples"][i]["seed"] for i in ("00000", "00000.s1", "00000.s2")] == \
+           [sample_seed(7, "00000", k) for k in range(3)]
+    assert doc["samples"] == {"per_example": 3, "seeds": SAMPLE_SEED_RULE}
+
+
+def test_an_interrupted_creation_of_a_sample_never_adopts_another_samples_prediction(server, config, tmp_path,
+                                                                                     capsys):
+    split, out = make_split(tmp_path / "eval", 1), tmp_path / "out"
+    run("veo-3.1", split, out, config)
+    zero = json.loads((out / ".hosted" / "00000.json").read_text())
+    # sample 1's run was killed while creating it: its intent, older than sample 0's prediction, with the same
+    # input (the model is sent no seed), so sample 0's prediction looks like the one it made
+    intent = {**zero["intent"], "at": zero["intent"]["at"] - 1}
+    (out / ".hosted" / "00000.s1.json").write_text(json.dumps({"model": zero["model"], "intent": intent,
+                                                               "fingerprint": zero["fingerprint"]}))
+    capsys.readouterr()
+    run("veo-3.1", split, out, config, dry_run=True, samples=2)
+    (line,) = capsys.readouterr().out.strip().splitlines()
+    assert line.startswith("00000.s1: ") and "resolves_interrupted_creation" in line
+    summary = run("veo-3.1", split, out, config, samples=2)
+    assert summary.ran == ["00000.s1"] and not summary.failed
+    assert server.requests_to("/v1/predictions", "GET")  # the account's predictions were checked ...
+    one = json.loads((out / ".hosted" / "00000.s1.json").read_text())["prediction_id"]
+    assert len(server.created) == 2 and one == server.created[1] != zero["prediction_id"]  # ... and 0's not taken
+
+
+def test_a_samples_stale_temporaries_are_removed_and_no_other_samples(tmp_path):
+    state_dir = tmp_path / ".hosted"
+    state_dir.mkdir()
+    names = [".00000.k3_x9q2a.part.mp4", ".00000.json.abc.tmp", ".00000.s1.k3_x9q2a.part.mp4",
+             ".00000.s1.json.abc.tmp", ".00000.s1.json"]
+    for name in names:
+        (state_dir / name).write_bytes(b"x")
+    HostedPredictor(PREDICTORS["veo-3.1"])._clean_temporaries(state_dir, "00000")
+    assert sorted(p.name for p in state_dir.iterdir()) == sorted(names[2:])  # sample 1's may be downloading
+    HostedPredictor(PREDICTORS["veo-3.1"])._clean_temporaries(state_dir, "00000.s1")
+    assert [p.name for p in state_dir.iterdir()] == [".00000.s1.json"]
+
+
 # -- dry run, concurrency, command line, configuration ------------------------------------------------------
 
 
@@ -424,6 +507,10 @@ def test_command_line_with_a_config_directory(server, config, tmp_path, capsys):
     command = ["--config", str(config), "predict", "grok-imagine", "--data", str(split), "--out", str(out)]
     assert main(command + ["--dry-run"]) == 0
     assert "2 paid API calls; nothing was sent" in capsys.readouterr().out and server.requests == []
+    assert main(command + ["--dry-run", "--samples", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "grok-imagine: 4 paid API calls (2 samples per example, each a paid call of its own)" in text
+    assert "note: grok-imagine takes no seed" in text and server.requests == []
     assert main(command + ["--concurrency", "1"]) == 0
     assert sorted(p.name for p in out.glob("*.mp4")) == ["00000.mp4", "00001.mp4"]
     doc = generation(out)

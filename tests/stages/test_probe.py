@@ -17,7 +17,7 @@ pytest.importorskip("diffusers")
 
 from fixtures.probe_bundles import contact, write_bundle  # noqa: E402
 from rigidbench.cli import main  # noqa: E402
-from rigidbench.driver import RunOptions, Selection, ledger_path, read_ledger, staging_path  # noqa: E402
+from rigidbench.driver import RunOptions, Selection, Why, ledger_path, read_ledger, staging_path  # noqa: E402
 from rigidbench.errors import UserError  # noqa: E402
 from rigidbench.probe import model as wan  # noqa: E402
 from rigidbench.probe.store import ActivationStore, shard_path  # noqa: E402
@@ -103,7 +103,8 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
     bundles, cache = data
     acts = tmp_path / "acts"
     first = extract(bundles, cache, acts)
-    assert first.extracted == list(CLIPS) and not first.failed and first.rows > 0
+    assert first.ran == list(CLIPS) and not first.failed and not first.facts.empty and not first.facts.missing
+    assert first.facts.rows == len(ActivationStore(acts).rows["clip"]) > 0
     assert loads["backbone"] == 1 and loads["forward"] == 4 * 5  # clips x taus
     manifest = json.loads((acts / "manifest.json").read_text())
     assert manifest["version"] == 3 and sorted(manifest["clips"]) == list(CLIPS)
@@ -111,7 +112,7 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
     before = store_content(acts)
 
     again = extract(bundles, cache, acts)
-    assert again.extracted == [] and again.skipped == list(CLIPS)
+    assert again.ran == [] and again.reused == list(CLIPS) and again.facts.rows == 0
     assert loads == {"backbone": 1, "forward": 20, "bases": 0}  # the backbone is not even loaded
     assert json.loads((acts / "manifest.json").read_text())["clips"] == manifest["clips"]
     assert_same(store_content(acts), before)
@@ -119,7 +120,8 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
     # one bundle's contacts change: that clip's targets, and only that clip, are extracted again
     contact(bundles / "00002", 2)
     changed = extract(bundles, cache, acts)
-    assert changed.extracted == ["00002"] and changed.redone == {"00002": "its inputs or settings changed"}
+    assert changed.ran == ["00002"] and {i: why.why for i, why in changed.redone.items()} == {"00002": Why.CHANGED}
+    assert changed.facts.rows == len(rows_of(acts, "00002")[0]["clip"])
     after = store_content(acts)
     keep = before[0]["clip"] != "00002"
     for k in after[1]:
@@ -131,7 +133,7 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
     # one clip of the cache is encoded again from another prompt: extraction redoes that clip alone
     (bundles / "00001" / "prompt.txt").write_text("A blue ball rolls to the right.")
     assert run_preprocess(bundles, cache, model="tiny", run=RunOptions(progress=False)).ran == ["00001"]
-    assert extract(bundles, cache, acts).extracted == ["00001"]
+    assert extract(bundles, cache, acts).ran == ["00001"]
     new, old = rows_of(acts, "00001"), clip_part(before, "00001")
     np.testing.assert_array_equal(new[0]["position"], old[0]["position"])  # the same targets, another text
     assert not np.array_equal(new[1][(1, 0.5)], old[1][(1, 0.5)])
@@ -139,9 +141,11 @@ def test_extract_rerun_computes_nothing_and_a_changed_clip_or_setting_is_redone(
     # a setting every clip shares (the schedule fractions): all of them, and the command line says so
     assert main(["probe", "extract", "--backbone", "base", "--cache", str(cache), "--data", str(bundles),
                  "--out", str(acts), "--taus", "0.3,0.7", "--no-progress"]) == 0
-    out = capsys.readouterr().out
-    assert "4 clips" in out and "made again: 4 clips (00000: its inputs or settings changed" in out
+    out = capsys.readouterr().out.splitlines()
     store = ActivationStore(acts)
+    assert out == [f"probe-extract: 4 made, 0 up to date, 0 failed of 4 clip(s) -> {acts}",
+                   "  made again, its inputs or settings changed: 00000, 00001, 00002, 00003",
+                   f"  actor-slot rows extracted: {len(store.rows['clip'])} (base backbone)"]
     assert store.taus == [0.3, 0.7] and store.manifest["splits"] == manifest["splits"]
     np.testing.assert_array_equal(rows_of(acts, "00000")[1][(1, 0.3)], clip_part(before, "00000")[1][(1, 0.3)])
 
@@ -169,7 +173,7 @@ def test_extract_resumes_an_interrupted_run_to_the_store_of_an_uninterrupted_one
     (staging_path(acts, "probe-extract", "00002") / "acts").mkdir(parents=True)
     ledger_path(acts, "probe-extract", "00001").unlink()
     resumed = extract(bundles, cache, acts)
-    assert resumed.skipped == ["00000"] and resumed.extracted == ["00001", "00002", "00003"]
+    assert resumed.reused == ["00000"] and resumed.ran == ["00001", "00002", "00003"]
     assert not staging_path(acts, "probe-extract", "00002").exists()
     assert_same(store_content(acts), store_content(clean))
     for name in ("splits", "clips"):
@@ -183,8 +187,10 @@ def test_extract_records_a_bad_clip_and_goes_on_and_refuses_an_older_store(data,
     shutil.rmtree(bundles / "00003")
     acts = tmp_path / "acts"
     assert main(["probe", "extract", "--backbone", "base", "--cache", str(cache), "--data", str(bundles),
-                 "--out", str(acts), "--no-progress"]) == 0
-    err = capsys.readouterr().err
+                 "--out", str(acts), "--no-progress"]) == 1
+    printed = capsys.readouterr()
+    assert printed.out.splitlines()[0] == f"probe-extract: 2 made, 0 up to date, 1 failed of 3 clip(s) -> {acts}"
+    err = printed.err
     assert "FAILED 00001" in err and "masks.npz" in err and "FAILED 00003: no bundle 00003" in err
     manifest = json.loads((acts / "manifest.json").read_text())
     assert sorted(manifest["clips"]) == ["00000", "00002"] and sorted(manifest["failed"]) == ["00001", "00003"]
@@ -203,16 +209,15 @@ def test_a_checkpoint_backbone_is_keyed_by_its_weights_not_its_folder(data, tmp_
     model.save_pretrained(tmp_path / "run-a" / "step-1")
     acts = tmp_path / "acts"
     first = run_extract(str(tmp_path / "run-a" / "step-1"), cache, bundles, acts, run=RunOptions(Selection.of(None, 2), progress=False))
-    assert first.extracted == ["00000", "00001"]
+    assert first.ran == ["00000", "00001"]
     shutil.copytree(tmp_path / "run-a", tmp_path / "run-b")  # the same weights elsewhere: nothing to do
     moved = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, run=RunOptions(Selection.of(None, 2), progress=False))
-    assert moved.skipped == ["00000", "00001"] and loads["backbone"] == 1
+    assert moved.reused == ["00000", "00001"] and loads["backbone"] == 1
     with torch.no_grad():
         model.blocks[0].attn1.to_q.weight.mul_(2.0)
     model.save_pretrained(tmp_path / "run-b" / "step-1")  # other weights at the same place: all again
     trained = run_extract(str(tmp_path / "run-b" / "step-1"), cache, bundles, acts, run=RunOptions(Selection.of(None, 2), progress=False))
-    assert trained.extracted == ["00000", "00001"] and set(trained.redone.values()) == \
-        {"its inputs or settings changed"}
+    assert trained.ran == ["00000", "00001"] and {why.why for why in trained.redone.values()} == {Why.CHANGED}
 
 
 def test_an_activation_store_of_the_older_chunked_layout_reads_the_same(data, tmp_path):
@@ -260,32 +265,44 @@ def effects(out):
 
 
 def test_intervene_rerun_computes_nothing_and_changed_settings_redo_exactly_the_changed_clips(made, store, tmp_path,
-                                                                                            loads):
+                                                                                            loads, capsys):
     cache = made[1]
     out = tmp_path / "intv"
     first = intervene(store, cache, out)
-    assert first["clips"] == ["00000", "00001"] and first["clips_this_run"] == 2
+    assert first.facts.results["clips"] == first.ran == ["00000", "00001"] and len(first.facts.bases.ran) == 2 * 3
     assert loads == {"backbone": 1, "forward": 2 * 3, "bases": 2 * 3}  # clips x taus; blocks x taus
     lines = effects(out)
     assert len(lines) == 2 * 2 * 3 * 3 * 2  # clips x blocks x taus x variants x readouts
 
     again = intervene(store, cache, out, n_resamples=80)
-    assert again["clips_this_run"] == 0 and again["bases_fitted_this_run"] == 0 and again["n_resamples"] == 80
+    assert again.ran == [] and again.reused == ["00000", "00001"] and again.facts.bases.ran == []
+    assert again.facts.results["n_resamples"] == 80
     assert loads == {"backbone": 1, "forward": 6, "bases": 6}  # only the summary was computed again
     assert effects(out) == lines
+    # the command prints both stages' reports in the words every stage uses, then the summary it wrote
+    assert main(["probe", "intervene", "--acts", str(store), "--cache", str(cache), "--out", str(out), "--clips", "2",
+                 "--resamples", "80", "--no-progress"]) == 0
+    summary = json.loads((out / "intervene.json").read_text())["summary"]
+    assert capsys.readouterr().out.splitlines() == [
+        f"probe-bases: 0 made, 6 up to date, 0 failed of 6 cell(s) -> {out}",
+        f"probe-intervene: 0 made, 2 up to date, 0 failed of 2 clip(s) -> {out}",
+        "  loss change over the 2 clip(s) done, mean [95% CI]:",
+        *(f"  {r['variant']:>8} {r['readout']:>6}: dL = {r['mean']:.4g} [{r['lo']:.4g}, {r['hi']:.4g}]"
+          for r in summary)]
+    assert len(summary) == 3 * 2 and loads["forward"] == 6
 
     more = intervene(store, cache, out, clips=3)  # one more clip: only it runs
-    assert more["clips"] == ["00000", "00001", "00002"] and more["clips_this_run"] == 1
+    assert more.facts.results["clips"] == ["00000", "00001", "00002"] and more.ran == ["00002"]
     assert effects(out)[:len(lines)] == lines and loads["forward"] == 6 + 3
 
     hooked = intervene(store, cache, out, full_readout="hook")  # a setting of every clip
-    assert hooked["clips_this_run"] == 2 and hooked["bases_fitted_this_run"] == 0
-    assert hooked["redone"] == {"00000": "its inputs or settings changed", "00001": "its inputs or settings changed"}
+    assert hooked.ran == ["00000", "00001"] and hooked.facts.bases.ran == []
+    assert {i: why.why for i, why in hooked.redone.items()} == {"00000": Why.CHANGED, "00001": Why.CHANGED}
     assert [e["delta"] for e in effects(out)] == pytest.approx([e["delta"] for e in lines], abs=1e-6)
 
     float32 = intervene(store, cache, out, inlp_dtype="float32")  # INLP's precision: the bases and every clip
-    assert float32["bases_fitted_this_run"] == 2 * 3 and float32["clips_this_run"] == 2
-    assert {b["inlp_dtype"] for b in float32["bases"]} == {"float32"}
+    assert len(float32.facts.bases.ran) == 2 * 3 and len(float32.ran) == 2
+    assert {b["inlp_dtype"] for b in float32.facts.results["bases"]} == {"float32"}
 
 
 def test_intervene_refits_the_bases_of_a_store_that_changed_and_reuses_copied_ones(made, store, tmp_path, loads):
@@ -295,14 +312,16 @@ def test_intervene_refits_the_bases_of_a_store_that_changed_and_reuses_copied_on
     copy = tmp_path / "copy"
     shutil.copytree(out / "bases", copy / "bases")  # bases fitted on the same store, without their ledger
     reused = intervene(store, cache, copy)
-    assert reused["bases_fitted_this_run"] == 0 and loads["bases"] == 6 and effects(copy) == effects(out)
+    assert reused.facts.bases.reused == ["b00_tau0.3", "b00_tau0.5", "b00_tau0.7", "b01_tau0.3", "b01_tau0.5",
+                                         "b01_tau0.7"]
+    assert reused.facts.bases.ran == [] and loads["bases"] == 6 and effects(copy) == effects(out)
     changed = tmp_path / "acts"
     shutil.copytree(store, changed)
     ledger_path(changed, "probe-extract", "00003").unlink()  # the store loses a clip: other rows, other bases
     run_extract("base", cache, made[0], changed, model="tiny", run=RunOptions(Selection.of(None, 3), progress=False))
     assert sorted(json.loads((changed / "manifest.json").read_text())["clips"]) == list(CLIPS[:3])
     refit = intervene(changed, cache, out)
-    assert refit["bases_fitted_this_run"] == 6 and refit["clips_this_run"] == 2
+    assert len(refit.facts.bases.ran) == 6 and len(refit.ran) == 2
 
 
 def test_intervene_resumes_an_interrupted_run_to_the_effects_of_an_uninterrupted_one(made, store, tmp_path,
@@ -326,9 +345,9 @@ def test_intervene_resumes_an_interrupted_run_to_the_effects_of_an_uninterrupted
     assert [read_ledger(out, "probe-intervene", c) is not None for c in CLIPS[:3]] == [True, False, False]
     (staging_path(out, "probe-intervene", "00001") / "effects").mkdir(parents=True)  # a kill's leftovers
     resumed = intervene(store, cache, out, clips=3)
-    assert resumed["clips_this_run"] == 2 and not staging_path(out, "probe-intervene", "00001").exists()
+    assert resumed.ran == ["00001", "00002"] and not staging_path(out, "probe-intervene", "00001").exists()
     assert effects(out) == effects(clean)
-    assert resumed["summary"] == json.loads((clean / "intervene.json").read_text())["summary"]
+    assert resumed.facts.results["summary"] == json.loads((clean / "intervene.json").read_text())["summary"]
 
 
 # -- recipes -------------------------------------------------------------------------------------------
@@ -389,7 +408,7 @@ def test_extract_with_the_release_recipe_conditions_as_the_release_and_a_changed
     capsys.readouterr()
     calls.clear()
     assert main(args) == 0  # ours: every clip again, with the evaluation prompt, zero padding, per-clip noise
-    assert "made again: 2 clips" in capsys.readouterr().out
+    assert "  made again, its inputs or settings changed: 00000, 00001" in capsys.readouterr().out.splitlines()
     manifest = json.loads((acts / "manifest.json").read_text())
     assert manifest["recipe"] == "ours" and manifest["conditioning"]["noise"] == "per-clip"
     for clip, batch, text, dtype, weights in calls:
@@ -400,7 +419,8 @@ def test_extract_with_the_release_recipe_conditions_as_the_release_and_a_changed
     assert not torch.equal(noises["00000"], noises["00001"])
     calls.clear()
     assert main(args + ["--recipe", "release", "--noise", "per-clip"]) == 0  # one choice changed: again
-    assert "made again: 2 clips" in capsys.readouterr().out and len(calls) == 10
+    assert "  made again, its inputs or settings changed: 00000, 00001" in capsys.readouterr().out.splitlines()
+    assert len(calls) == 10
     manifest = json.loads((acts / "manifest.json").read_text())
     assert manifest["recipe"] == "release+changes" and manifest["conditioning"]["noise"] == "per-clip"
     assert manifest["conditioning"]["prompt"] == "task"
@@ -416,7 +436,7 @@ def test_intervene_on_a_release_store_uses_its_conditioning_and_the_release_inlp
     calls, _ = seen_forwards
     calls.clear()
     out = tmp_path / "intv"
-    result = intervene(acts, cache, out, clips=1)
+    result = intervene(acts, cache, out, clips=1).facts.results
     assert result["recipe"] == "release" and result["inlp"]["procedure"] == "release"
     assert result["conditioning"] == RECIPES["release"].conditioning.as_dict() == result["store_conditioning"]
     assert calls and all(c[3] == torch.bfloat16 and c[1].timestep_tokens.shape == (1,) for c in calls)
@@ -432,7 +452,7 @@ def test_intervene_on_a_release_store_uses_its_conditioning_and_the_release_inlp
     # ours on the same store: the stable INLP refits every cell, the clip runs again, and the log says that
     # the conditioning is not the store's
     ours = intervene(acts, cache, out, clips=1, recipe="ours")
-    assert ours["inlp"]["procedure"] == "stable" and ours["bases_fitted_this_run"] == 6
-    assert ours["clips_this_run"] == 1 and "conditioning other than the store's extraction" in caplog.text
+    assert ours.facts.results["inlp"]["procedure"] == "stable" and len(ours.facts.bases.ran) == 6
+    assert ours.ran == ["00000"] and "conditioning other than the store's extraction" in caplog.text
     with (out / "bases.csv").open() as fh:
         assert {r["procedure"] for r in csv.DictReader(fh)} == {"stable"}

@@ -485,9 +485,9 @@ def test_evaluate_threads_the_protocol_and_records_why_a_value_is_undefined(refe
         decoders.append(kw["decoder"])
         return real_read(path, **kw)
 
-    def score_inputs(inputs, metrics=None):
+    def score_inputs(inputs, metrics=None, **options):
         rules.append(inputs.edge_rules)
-        scores = real_score(inputs, metrics)
+        scores = real_score(inputs, metrics, **options)
         if inputs.ref_tracks.shape[0] and len(rules) == 1:  # the first example: a value its rules leave undefined
             scores["ate"] = MetricResult(float("nan"), None, "why it is undefined")
         return scores
@@ -530,7 +530,7 @@ def test_the_report_names_each_runs_protocol(tmp_path):
     table = load_runs(dirs)
     assert [r.protocol for r in table.runs] == ["rigidbench-v1", "paper-rules"]
     assert any("different evaluation protocols" in n and "b: paper-rules" in n for n in table.notes)
-    data = SimpleNamespace(table=table, resamples=10, seed=0, baseline=0)
+    data = SimpleNamespace(table=table, resamples=10, seed=0, baseline=0, samples=None)
     assert "protocol paper-rules / rigidbench-v1" in "".join(header(data, report_notes(data)))
     assert "<td>paper-rules</td>" in runs_table(data, {})
     assert not any("protocols" in n for n in load_runs(dirs[:1]).notes)

@@ -52,6 +52,16 @@ QUICK = {
                                           "digest.seconds", "frame_check.seconds", "rerun.seconds",
                                           "after_deleting_source.bundle_ok"]),
     "assets_preview.py": (["--quick"], ["object_ms.apple.first_in_process", "object_ms_after_reset_mean"]),
+    "evaluate_samples.py": (["--quick"], ["machine.cpus", "clip.width", "runs.K1.wall_s", "runs.K1.cpu_s",
+                                          "runs.K1.phases_s.imports", "runs.K1.phases_s.evaluate",
+                                          "runs.K1.phases_s.decode_s", "runs.K1.phases_s.metrics_s",
+                                          "runs.K1.records", "runs.K2.wall_s", "runs.K2.records",
+                                          "runs.K2.metrics.1.iou"]),
+    # renders one example twice at the test preset and makes 2 geometry-only twins (about 25 s on a 2-core CPU)
+    "envelope_twins.py": (["--quick"], [f"presets.test.{f}" for f in (
+        "reference.cold.wall_s", "reference.cold.cpu_s", "reference.warm.wall_s", "reference.warm.cpu_s",
+        "twins.count", "twins.total.wall_s", "twins.total.cpu_s", "twins.mean_wall_s", "twins.mean_cpu_s",
+        "ratio.wall_s", "ratio.cpu_s", "cheaper.wall", "cheaper.cpu")]),
     # renders two examples at the test preset with Blender (about 18 s on a 2-core CPU)
     "track_rule.py": (["--quick"], ["ids", "preset", "rules.rigidbench.points", "rules.published.visible_frac",
                                     "rules.published.scores.reference.ate", "max_abs_change.ate",
@@ -63,6 +73,9 @@ SKIPPED = {
     "render.py": "--quick still renders one example's 49 preview frames with Cycles: over a minute on a 2-core CPU",
     "scale.py": "starts Ray and renders with several executors: about 45 s even with --quick (one example)",
     "probe.py": "--quick still fits probes and INLP cells: about two minutes on a 2-core CPU",
+    "published_resimulation.py": "builds a synthetic published set (one example per task) and re-simulates it with "
+                                 "Blender: about 45 s on a 2-core CPU; tests/integration/test_published_resim.py "
+                                 "covers the same code",
     "protocol_effect.py": "--quick renders an example with Blender and scores two failure modes, five hostile "
                           "cases and a BT.709 clip under three protocols: about 60 s on a 2-core CPU",
 }

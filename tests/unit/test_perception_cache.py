@@ -29,7 +29,7 @@ def _perception(rng, t=7, n=3, h=13, w=21, p=5, c=4) -> Perception:
 
 def _assert_same(a: Perception, b: Perception) -> None:
     for name in a.__dataclass_fields__:
-        x, y = getattr(a, name), getattr(b, name)
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))  # (geometry_only: a Python bool)
         assert x.dtype == y.dtype and x.shape == y.shape, name
         np.testing.assert_array_equal(x, y, err_msg=name)
 

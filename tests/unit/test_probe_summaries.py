@@ -14,6 +14,7 @@ import pytest
 
 from rigidbench.probe.report import probe_tables, write_report
 from rigidbench.stages.probe_intervene import READOUTS, VARIANTS, summarize
+from fixtures.report_files import read_csv
 
 CELLS = [(0, 0.3), (0, 0.7), (1, 0.3), (1, 0.7)]
 CLIPS = {"c0": CELLS, "c1": CELLS, "c2": CELLS[:1], "c3": CELLS}
@@ -31,10 +32,6 @@ def effect_lines() -> list[dict]:
              "loss": 1.0 + delta(c, b, tau, v, r), "delta": delta(c, b, tau, v, r)}
             for c, cells in CLIPS.items() for (b, tau) in cells for v in VARIANTS for r in READOUTS]
 
-
-def read_csv(path) -> list[dict]:
-    with open(path) as fh:
-        return list(csv.DictReader(fh))
 
 
 @pytest.fixture(scope="module")

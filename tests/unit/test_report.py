@@ -8,7 +8,6 @@ ranks and probabilities of improvement are known in advance.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from html.parser import HTMLParser
 from pathlib import Path
@@ -23,6 +22,7 @@ from rigidbench.report import ReportError, build_report, load_runs
 from rigidbench.report.analysis import analyse, choose_baseline, rank_marks
 from rigidbench.report.tables import to_latex, to_markdown
 from rigidbench.stats import bootstrap_ci, paired_difference, probability_of_improvement
+from fixtures.report_files import read_csv, row_for
 
 RESAMPLES = 2000
 N = 8
@@ -93,15 +93,6 @@ def report(runs, tmp_path_factory) -> Path:
     return build_report(runs, tmp_path_factory.mktemp("report") / "out", resamples=RESAMPLES, seed=0)
 
 
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
-def row_for(rows, **match) -> dict[str, str]:
-    found = [r for r in rows if all(r[k] == v for k, v in match.items())]
-    assert len(found) == 1, (match, found)
-    return found[0]
 
 
 def example_scores(run_dir: Path, metric: str, ids=IDS) -> np.ndarray:

@@ -8,7 +8,6 @@ run with a long reason, and every run is unofficial for the same reason ('gamma'
 
 from __future__ import annotations
 
-import csv
 import json
 import re
 from pathlib import Path
@@ -18,6 +17,7 @@ import pytest
 
 from rigidbench.metrics import METRICS
 from rigidbench.report import build_report
+from fixtures.report_files import read_csv
 
 TASKS = ("ball_chain", "ramp_collision", "drop_into_cluster", "bounce", "free_fall")
 IDS = [f"{i:05d}" for i in range(10)]
@@ -54,10 +54,6 @@ def report(tmp_path_factory) -> Path:
     runs = [write_run(root / "runs", model, seed) for seed, model in enumerate(BGDRIFT)]
     return build_report(runs, root / "out", resamples=500, seed=0)
 
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 def md_rows(path: Path) -> list[list[str]]:

@@ -9,7 +9,6 @@ paper row; every other reason is checked on the loaded table, without drawing a 
 
 from __future__ import annotations
 
-import csv
 import json
 import re
 from pathlib import Path
@@ -20,6 +19,7 @@ import pytest
 from rigidbench.metrics import METRICS
 from rigidbench.report import build_report, load_runs
 from rigidbench.report.paper import comparison_problem, load_paper_numbers
+from fixtures.report_files import read_csv
 
 MARKER = "reported in the paper, not re-scored here"
 TASKS = ("ball_chain", "ramp_collision", "drop_into_cluster", "bounce", "free_fall")
@@ -50,10 +50,6 @@ def write_run(root: Path, name: str, dataset: dict | None = PUBLISHED, protocol:
     (run_dir / "run.json").write_text(json.dumps({"model": name, "perception": {"backend": perception}}))
     return run_dir
 
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 @pytest.fixture(scope="module")

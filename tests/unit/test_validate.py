@@ -273,3 +273,39 @@ def test_a_published_sample_among_ours_is_an_error_for_that_sample(tmp_path):
     report = validate_predictions(pred, data)
     assert [(i.kind, i.example_id) for i in report.errors] == [("published_layout", "00003")]
     assert "00003" not in report.references and "rigidbench import" in report.errors[0].message
+
+
+def test_several_samples_per_example_follow_the_naming_rule(tmp_path):
+    """``<id>.s<k>.<ext>`` is sample k of ``<id>`` and ``<id>.<ext>`` sample 0: each is checked as one video is;
+    ``<id>.mp4`` beside ``<id>.s0.mp4`` is one error naming both; the report counts the samples."""
+    data = make_data_dir(tmp_path / "data", ["a", "b", "c", "d"])
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    for name, frames in (("a.mp4", 49), ("a.s1.mp4", 49), ("a.s2.webm", 49), ("b.s0.mp4", 49), ("b.s1.mp4", 24),
+                         ("c.mp4", 49), ("c.s0.mp4", 49), ("d.mp4", 49), ("d.s01.mp4", 49), ("e.s1.mp4", 49)):
+        write_video(pred / name, clip(frames), fps=24)
+    (pred / "a.s1.state.npz").write_bytes(b"state")  # a sample's world state beside its video is not a stranger
+    report = validate_predictions(pred, data)
+    assert {e: {k: p.name for k, p in found.items()} for e, found in report.samples.items()} == {
+        "a": {0: "a.mp4", 1: "a.s1.mp4", 2: "a.s2.webm"}, "b": {0: "b.s0.mp4", 1: "b.s1.mp4"},
+        "c": {0: "c.mp4"}, "d": {0: "d.mp4"}}
+    assert len(report.files) == 8 and report.missing == []
+    (dup,) = report.of_kind("duplicate")
+    assert dup.severity == ERROR and dup.example_id == "c" and "c.mp4" in dup.message and "c.s0.mp4" in dup.message
+    (short,) = report.of_kind("too_short")  # every sample is checked
+    assert short.example_id == "b" and short.path.name == "b.s1.mp4"
+    assert {i.path.name for i in report.of_kind("extra")} == {"d.s01.mp4", "e.s1.mp4"}  # no leading zeros; no e
+    assert report.samples_per_example() == (1, 3)
+    (uneven,) = report.of_kind("uneven_samples")
+    assert uneven.severity == WARNING and "2 with 1, 1 with 2, 1 with 3" in uneven.message
+    assert "samples per example: 1 to 3 (8 videos read;" in format_report(report) and not report.ok
+
+
+def test_one_sample_per_example_reports_as_before(tmp_path):
+    data = make_data_dir(tmp_path / "data", ["a"])
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_video(pred / "a.s0.mp4", clip(49), fps=24)  # sample 0 under its other name
+    report = validate_predictions(pred, data)
+    assert report.ok and report.samples_per_example() == (1, 1) and report.matched == {"a": pred / "a.s0.mp4"}
+    assert "samples per example" not in format_report(report)

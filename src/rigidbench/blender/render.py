@@ -327,12 +327,15 @@ def _hide(obj: Any) -> None:
     obj.hide_set(True)
 
 
-def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[str, Any]) -> Dressing:
+def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[str, Any],
+                environment: bool = True) -> Dressing:
     """Give the physics scene its looks. ``objects`` maps body name (actors, "support", "floor") to
     the physics bpy object. Each actor gets its procedural model as a child of its physics object
     (which is hidden from render) and the scene's environment is built; the physics floor, and the
     physics support when the environment has a support of its name, are hidden from render. A
-    support the environment lacks (a hand-made spec) stays visible in a plain material."""
+    support the environment lacks (a hand-made spec) stays visible in a plain material. Without
+    ``environment`` (data passes of a scene rebuilt from a published example, whose room is not ours)
+    no environment is built and the physics support and floor stay visible in plain materials."""
     import bpy
 
     render_objects: dict[str, Any] = {}
@@ -351,19 +354,20 @@ def dress_scene(scene: Any, spec: SceneSpec, registry: Registry, objects: dict[s
         _hide(phys)
         hidden.append(body.name)
         render_objects[body.name] = obj
-    environment = asset_scenes.build_environment(registry.scene(spec.scene))
+    built = asset_scenes.build_environment(registry.scene(spec.scene)) if environment else None
     for name in (SUPPORT_NAME, FLOOR_NAME):
-        if name in objects and (name == FLOOR_NAME or spec.support.name in environment.supports):
+        if name in objects and built is not None and (name == FLOOR_NAME or spec.support.name in built.supports):
             _hide(objects[name])
             hidden.append(name)
-    if SUPPORT_NAME in objects and SUPPORT_NAME not in hidden:
-        _set_material(objects[SUPPORT_NAME], _plain_material(f"rb_{SUPPORT_NAME}", SUPPORT_RGB, 0.7))
+    for name in (SUPPORT_NAME, FLOOR_NAME):
+        if name in objects and name not in hidden:
+            _set_material(objects[name], _plain_material(f"rb_{name}", SUPPORT_RGB, 0.7))
     for obj in scene.objects:
         obj.pass_index = 0
     for k, body in enumerate(spec.bodies, start=1):
         render_objects[body.name].pass_index = k
     bpy.context.view_layer.update()
-    return Dressing(render_objects=render_objects, environment=environment, hidden=hidden)
+    return Dressing(render_objects=render_objects, environment=built, hidden=hidden)
 
 
 # -- one example --------------------------------------------------------------------------------

@@ -52,6 +52,10 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, help="output directory (default predictions/NAME)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the request each example would send and the number of paid calls; send nothing")
+    p.add_argument("--samples", type=positive_int, default=1, metavar="K",
+                   help="predictions per example (default 1), each with its own seed: sample 0 is <id>.mp4, sample "
+                        "k <id>.s<k>.mp4; a hosted model is paid K times per example; raising K later makes only "
+                        "the new samples")
 
 
 def cmd_predict(args, ctx: RunContext) -> int:
@@ -67,12 +71,16 @@ def cmd_predict(args, ctx: RunContext) -> int:
     ctx.registry  # a bad configuration file: one error now, not one failure per example
     out = output_dir(args.out or Path("predictions") / info.name, dry_run=args.dry_run)
     report = predict(args.name, split_dir(args), out, predict_context(args, ctx, [args.name]), run_options(args),
-                     dry_run=args.dry_run)
+                     dry_run=args.dry_run, samples=args.samples)
     if args.dry_run:
         planned = report.facts
         print(f"{report.stage}: would make {len(planned.planned)}, {len(report.reused)} up to date, "
               f"{len(report.failed)} failed of {len(report.selected)} {report.unit}(s)")
-        print(f"{info.name}: {planned.paid_calls} paid API calls; nothing was sent")
+        per = (f" ({planned.samples} samples per example, each a paid call of its own)"
+               if planned.samples > 1 and planned.paid_calls else "")
+        print(f"{info.name}: {planned.paid_calls} paid API calls{per}; nothing was sent")
+        if planned.note:
+            print(f"note: {planned.note}")
         return 0
     return report_stage(report)
 
@@ -109,8 +117,9 @@ def cmd_audit(args, ctx: RunContext) -> int:
 
 
 COMMANDS = (
-    Command("predict", "make one video per reference example with a registered predictor or your own model "
-                       "(--list shows the registry); reruns skip examples whose inputs and settings are unchanged",
+    Command("predict", "make one video (K with --samples K) per reference example with a registered predictor or "
+                       "your own model (--list shows the registry); reruns skip examples whose inputs and settings "
+                       "are unchanged",
             "rigidbench.commands.models:cmd_predict", _predict_arguments,
             groups=("data", "model", "executor", "selection")),
     Command("audit", "several video models end to end: predict (resuming), validate, evaluate, then one report; "

@@ -14,7 +14,7 @@ from ..perception.device import resolve_device
 from ..probe.recipe import CHOICES, INLP_PROCEDURES, RECIPE_NAMES
 from ..registry import load_target
 from ..train.config import MODEL_SPECS
-from . import Command, run_options
+from . import Command, report_stage, run_options
 
 PAPER_TAUS = "0.1,0.3,0.5,0.7,0.9"
 INTERVENTION_TAUS = "0.3,0.5,0.7"
@@ -144,26 +144,18 @@ def conditioning_overrides(args) -> dict:
 
 def cmd_extract(args, ctx: RunContext) -> int:
     run_extract = load_target("rigidbench.stages.probe_extract:run_extract", "command")
-    summary = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
-                          model_path=None if args.model_path is None else str(args.model_path),
-                          taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
-                          run=run_options(args), backbone_seed=args.random_seed, recipe=args.recipe,
-                          overrides=conditioning_overrides(args))
-    print(f"probe extract ({args.backbone}): {len(summary.extracted)} clips, {summary.rows} actor-slot rows into "
-          f"{summary.out} ({len(summary.skipped)} already there, {len(summary.failed)} failed) in "
-          f"{summary.seconds:.1f} s")
-    _print_redone(summary.redone, summary.report.ran if summary.report else [])
-    for clip, reason in summary.failed.items():
+    report = run_extract(args.backbone, args.cache, args.data, args.out, model=args.model,
+                         model_path=None if args.model_path is None else str(args.model_path),
+                         taus=parse_floats(args.taus, "--taus"), device=args.net_device or ctx.device,
+                         run=run_options(args), backbone_seed=args.random_seed, recipe=args.recipe,
+                         overrides=conditioning_overrides(args))
+    status = report_stage(report)  # the words every stage uses; then the rows this run extracted
+    facts = report.facts
+    empty = f"; no actor covered in {', '.join(facts.empty)}" if facts.empty else ""
+    print(f"  actor-slot rows extracted: {facts.rows} ({args.backbone} backbone){empty}")
+    for clip, reason in facts.missing.items():  # clips of the cache that --data lacks: failed, as the manifest says
         print(f"  FAILED {clip}: {reason}", file=sys.stderr)
-    return 1 if summary.failed and not summary.extracted and not summary.skipped else 0
-
-
-def _print_redone(redone: dict[str, str], ran) -> None:
-    """One line for the clips made again this run and why (the first few)."""
-    again = [i for i in ran if i in redone]
-    if again:
-        print(f"  made again: {len(again)} clips ({'; '.join(f'{i}: {redone[i]}' for i in again[:5])}"
-              f"{' ...' if len(again) > 5 else ''})")
+    return 1 if facts.missing else status
 
 
 def cmd_fit(args, ctx: RunContext) -> int:
@@ -184,19 +176,17 @@ def cmd_intervene(args, ctx: RunContext) -> int:
     run = load_target("rigidbench.stages.probe_intervene:run_intervene", "command")
     if args.clips < 1:
         raise UserError(f"--clips must be at least 1, got {args.clips}")
-    result = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"),
+    report = run(args.acts, args.cache, args.out, taus=parse_floats(args.taus, "--taus"),
                  run=run_options(args, limit=args.clips), blocks=parse_ints(args.blocks, "--blocks"),
                  n_resamples=args.resamples, device=args.net_device or ctx.device, full_readout=args.full_readout,
                  inlp_dtype=args.inlp_dtype, clip_split=args.clip_split, recipe=args.recipe,
                  overrides=conditioning_overrides(args), inlp_procedure=args.inlp_procedure)
-    print(f"probe intervene: {len(result['clips'])} clips ({result['clips_this_run']} run now), "
-          f"{len(result['bases'])} cells ({result['bases_fitted_this_run']} fitted now) into {args.out}")
-    _print_redone(result.get("redone", {}), result["clips"])
-    for row in result["summary"]:
+    report_stage(report.facts.bases)  # the cells' bases (every one fitted, or the run stopped), then the clips
+    status = report_stage(report)
+    print(f"  loss change over the {len(report.facts.results['clips'])} clip(s) done, mean [95% CI]:")
+    for row in report.facts.results["summary"]:
         print(f"  {row['variant']:>8} {row['readout']:>6}: dL = {row['mean']:.4g} [{row['lo']:.4g}, {row['hi']:.4g}]")
-    for clip, reason in result.get("failed", {}).items():
-        print(f"  FAILED {clip}: {reason}", file=sys.stderr)
-    return 0
+    return status
 
 
 def cmd_report(args, ctx: RunContext) -> int:

@@ -46,6 +46,10 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-short", action="store_true",
                    help="score clips that do not cover the reference span (normally refused, as by the published "
                         "evaluator) on the frames they have; marked short in results.json, never official")
+    p.add_argument("--envelope", type=Path, metavar="ENV",
+                   help="a physical envelope folder (made by `rigidbench envelope` for this set): results.json also "
+                        "says, per measurement, task and partition, the share of examples inside the twins' 5-95%% "
+                        "band and the mean excess beyond it (docs/statistics.md); changes no score")
 
 
 def cmd_evaluate(args, ctx: RunContext) -> int:
@@ -57,20 +61,45 @@ def cmd_evaluate(args, ctx: RunContext) -> int:
     report = evaluate(args.predictions, split_dir(args), out, perception=args.perception, run=run_options(args),
                       model=args.model, perception_options=options, device=ctx.device, protocol=args.protocol,
                       first_frame_check=not args.no_first_frame_check,
-                      allow_short=args.allow_short)
+                      allow_short=args.allow_short, envelope=args.envelope)
     status = report_stage(report)  # the words every stage uses; then evaluate's own lines
     facts = report.facts
     dataset = facts.results.get("dataset", {})
     print(f"reference set: {dataset.get('dataset')} {dataset.get('version') or ''}; protocol "
           f"{facts.results['protocol']['name']}; model {facts.results['model']}")
+    samples = facts.results.get("samples") or {}
+    counts = samples.get("samples_per_example") or {}
+    several = (counts.get("max") or 1) > 1  # then each measurement's mean ± the spread between seeds
+    if several:
+        span = str(counts["min"]) if counts["min"] == counts["max"] else f"{counts['min']} to {counts['max']}"
+        print(f"samples per example: {span} ({samples.get('n_items')} scored); each example's value is the mean of "
+              "its samples; ± is the seed std (of the whole-set mean over sample indices)")
     for name, stats in facts.results["overall"].items():
         mean = "n/a" if stats["mean"] is None else f"{stats['mean']:.4f}"
+        if several:
+            seed_std = ((samples.get("metrics") or {}).get(name) or {}).get("seed_std")
+            mean += " ± " + ("n/a" if seed_std is None else f"{seed_std:.4f}")
         print(f"  {name:12s} {mean:>10s}  (finite {stats['finite']}/{stats['n']})")
     for metric, reason in facts.skipped_metrics.items():
         print(f"  skipped {metric}: {reason}")
+    if "envelope" in facts.results:
+        _print_envelope(facts.results["envelope"])
     print("official result" if facts.official else
           "not an official result: " + "; ".join(facts.results.get("why_not_official", [])))
     return status
+
+
+def _print_envelope(block: dict) -> None:
+    """evaluate --envelope's lines: per measurement the share inside the envelope and the mean excess."""
+    print(f"against the envelope {block['source']} ({block['twins']} twins"
+          f"{', geometry only' if block['geometry_only'] else ''}):")
+    for name, stats in block["overall"].items():
+        if stats["n"]:
+            print(f"  {name:12s} inside {stats['inside']:6.1%}  mean excess {stats['excess']:.4g}  (n {stats['n']})")
+    if block["no_envelope"]:
+        ids = list(block["no_envelope"])
+        print(f"  {block['n_no_envelope']} examples without an envelope: {', '.join(ids[:10])}"
+              f"{' ...' if len(ids) > 10 else ''}")
 
 
 def _report_arguments(p: argparse.ArgumentParser) -> None:
@@ -86,19 +115,29 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
                    help="object outlines drawn on the filmstrips: the reference masks, or each run's perceived masks")
     p.add_argument("--probe-report", type=Path, metavar="PATH",
                    help="a probe report (the report.html `rigidbench probe report` wrote, or its directory) to link")
+    p.add_argument("--envelope-metric", default="ate3d", metavar="METRIC",
+                   help="the measurement of the figure of each model's samples against the physical envelope "
+                        "(default ate3d; runs scored with `evaluate --envelope`)")
+    p.add_argument("--power-difference", action="append", default=[], metavar="METRIC=VALUE",
+                   help="a difference the power table says how many examples and samples need (repeatable; in "
+                        "the measurement's unit; default 10%% of the baseline's mean)")
 
 
 def cmd_report(args, ctx=None) -> int:
     """CLI entry: args.runs (list of run dirs), args.out, args.baseline, args.resamples, args.seed; optional
     args.examples (filmstrip examples, default 3), args.no_clips, args.outlines ("reference" or "perceived"),
-    args.probe_report (a probe report to link)."""
+    args.probe_report (a probe report to link), args.envelope_metric, args.power_difference (METRIC=VALUE)."""
+    from ..metrics import METRICS
     from ..report import build_report
+    from ..report.samples import parse_differences
 
     writable(args.out)
     page = build_report(args.runs, args.out, resamples=args.resamples, seed=args.seed, baseline=args.baseline,
                         examples=getattr(args, "examples", 3), clips=not getattr(args, "no_clips", False),
                         outlines=getattr(args, "outlines", "reference"),
-                        probe_report=getattr(args, "probe_report", None))
+                        probe_report=getattr(args, "probe_report", None),
+                        envelope_metric=getattr(args, "envelope_metric", "ate3d"),
+                        power_differences=parse_differences(getattr(args, "power_difference", None), tuple(METRICS)))
     print(f"report for {len(args.runs)} run(s): {page}")
     return 0
 
@@ -125,7 +164,8 @@ def cmd_readouts(args, ctx=None) -> int:
                 s = summary(e["readouts"])
                 raised = [k for k, v in s["flags"].items() if v]
                 vals = ", ".join(f"{k} {('-' if s[k] is None else format(s[k], '.3g'))}" for k in DISTRIBUTIONS)
-                print(f"    {e['id']} ({e.get('task', '')}): {vals}; flags: {', '.join(raised) or 'none'}")
+                which = f"{e['id']} sample {e['sample']}" if e.get("sample") else e["id"]
+                print(f"    {which} ({e.get('task', '')}): {vals}; flags: {', '.join(raised) or 'none'}")
     return 0
 
 
@@ -217,6 +257,8 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
                    help="built-in predictors to run (default: a set of "
                    "image-space failure modes plus gravity)")
     p.add_argument("--no-report", action="store_true", help="skip the report (tables, figures, report.html)")
+    p.add_argument("--twins", type=non_negative_int, default=4, metavar="N",
+                   help="geometry-only physical twins per example in the demo's envelope (default 4; 0: no envelope)")
 
 
 def cmd_demo(args, ctx: RunContext) -> int:
@@ -226,7 +268,7 @@ def cmd_demo(args, ctx: RunContext) -> int:
     modes = split_ids(args.modes) or None
     kwargs = {"modes": modes} if modes else {}
     return run_demo(args.out, quality=args.quality, severity=args.severity, perception=args.perception,
-                    report=not args.no_report, ctx=ctx, **kwargs)
+                    report=not args.no_report, ctx=ctx, twins=args.twins, **kwargs)
 
 
 COMMANDS = (

@@ -289,6 +289,23 @@ def _contacts(raw: Any, names: list[str], T: int, where: Path) -> dict:
             "method": "published set: BVH face overlap of the two meshes per frame (normals of body b's faces)"}
 
 
+def _trajectory(path: Path, names: list[str], roles: list[str], fps: float, T: int) -> Trajectory:
+    """The actors' world states of a published sample's trajectories.npz (``<actor>_positions``/``_rotations``
+    for every actor, T frames each), quaternions normalised."""
+    traj_npz = _read_npz(path)
+    try:
+        positions = np.stack([traj_npz[f"{n}_positions"] for n in names]).astype(np.float64)
+        quats = np.stack([traj_npz[f"{n}_rotations"] for n in names]).astype(np.float64)
+    except KeyError as exc:
+        raise BundleError(f"{path}: no {exc.args[0]}; is this the published set?") from None
+    N = len(names)
+    if positions.shape != (N, T, 3) or quats.shape != (N, T, 4):
+        raise BundleError(f"{path}: positions {positions.shape} / rotations {quats.shape}, expected ({N},{T},3) / "
+                          f"({N},{T},4)")
+    quats /= np.linalg.norm(quats, axis=-1, keepdims=True)
+    return Trajectory(names=tuple(names), roles=tuple(roles), fps=fps, positions_m=positions, quat_wxyz=quats)
+
+
 def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=None,
                    dataset: dict | None = None, digest: str | None = None) -> dict:
     """Write the bundle of one published sample ``src`` into the empty folder ``dst``; returns its metadata.
@@ -302,7 +319,7 @@ def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=
     names = [str(n) for n in masks_npz["object_names"]]
     if masks.ndim != 4 or masks.shape[1] != len(names):
         raise BundleError(f"{src / 'masks.npz'}: masks {masks.shape} do not match {len(names)} object names")
-    T, N, H, W = masks.shape
+    T, _, H, W = masks.shape
     K, R_c, t_c, W_meta, H_meta = _camera(meta, src / "metadata.json")
     if (W_meta, H_meta) != (W, H):
         raise BundleError(f"{src}: camera says {W_meta}x{H_meta}, masks are {W}x{H}")
@@ -316,20 +333,10 @@ def convert_sample(src: Path, dst: Path, sample_id: str, row: dict, *, registry=
     depth_raw = _read_npz(src / "depth.npz", ("depth",))["depth"]
     if depth_raw.shape != (T, H, W):
         raise BundleError(f"{src / 'depth.npz'}: depth {depth_raw.shape}, expected ({T}, {H}, {W})")
-    traj_npz = _read_npz(src / "trajectories.npz")
-    try:
-        positions = np.stack([traj_npz[f"{n}_positions"] for n in names]).astype(np.float64)
-        quats = np.stack([traj_npz[f"{n}_rotations"] for n in names]).astype(np.float64)
-    except KeyError as exc:
-        raise BundleError(f"{src / 'trajectories.npz'}: no {exc.args[0]}; is this the published set?") from None
-    if positions.shape != (N, T, 3) or quats.shape != (N, T, 4):
-        raise BundleError(f"{src / 'trajectories.npz'}: positions {positions.shape} / rotations {quats.shape}, "
-                          f"expected ({N},{T},3) / ({N},{T},4)")
-    quats /= np.linalg.norm(quats, axis=-1, keepdims=True)
-    traj = Trajectory(names=tuple(names), roles=tuple(roles), fps=fps, positions_m=positions, quat_wxyz=quats)
+    traj = _trajectory(src / "trajectories.npz", names, roles, fps, T)
     rule = TRACK_RULES["published"]
     tracks = ground_truth_tracks(masks, depth_raw.astype(np.float64), K, R_c, t_c, quat_to_matrix(traj.quat_wxyz),
-                                 positions, np.array([r == "active" for r in roles]), seed=int(meta.get("seed", 0)),
+                                 traj.positions_m, np.array([r == "active" for r in roles]), seed=int(meta.get("seed", 0)),
                                  rule=rule)
     prompt_path = src / "prompt.txt"
     prompt = (prompt_path.read_text().strip() if prompt_path.is_file() else str(meta.get("prompt", "")).strip())

@@ -17,9 +17,9 @@ A rerun skips examples whose inputs (video, world state, reference, backend, set
 unchanged and recomputes the others; an interrupted run resumes. One bad example is recorded
 with its reason and never stops the others; a bug (any other exception) stops the run.
 
-Modules: ``scoring`` (one example -> metrics), ``keys`` (input hashes), ``protocol`` (decoding and the JPEG
-round trip), ``aggregation`` (results.json numbers) and ``provenance`` (run.json); the loop is
-``stages.evaluate``.
+Modules: ``scoring`` (one example -> metrics), ``reference_side`` (what an example's samples share of its
+reference), ``keys`` (input hashes), ``protocol`` (decoding and the JPEG round trip), ``aggregation``
+(results.json numbers) and ``provenance`` (run.json); the loop is ``stages.evaluate``.
 """
 
 from .aggregation import EVAL_SIZE, aggregate, summarise, why_not_official

@@ -17,6 +17,7 @@ example's input key and is written, with the reference set's identity, into each
 from __future__ import annotations
 
 import io
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
@@ -24,6 +25,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import UserError
+from ..executors import usable_cores
 from ..metrics.common import EDGE_RULES, EdgeRules
 from ..video import DECODERS, Video, read_video
 
@@ -58,11 +60,12 @@ class Protocol:
         """The prediction at ``path`` decoded with this protocol's decoder (``video.read_video``)."""
         return read_video(path, until_s=until_s, decoder=self.decoder)
 
-    def prepare(self, frames: np.ndarray) -> np.ndarray:
-        """frames (T,H,W,3) uint8 at the reference size -> the frames perception and metrics see."""
+    def prepare(self, frames: np.ndarray, in_place: bool = False) -> np.ndarray:
+        """frames (T,H,W,3) uint8 at the reference size -> the frames perception and metrics see; ``in_place``:
+        written over ``frames`` (the evaluator's own decoded copy: no second clip-sized array)."""
         if self.jpeg_quality is None:
             return frames
-        return jpeg_roundtrip(frames, self.jpeg_quality)
+        return jpeg_roundtrip(frames, self.jpeg_quality, out=frames if in_place and frames.flags.writeable else None)
 
 
 PROTOCOLS = {p.name: p for p in (
@@ -86,21 +89,31 @@ def get_protocol(name: str | None) -> Protocol:
         raise UserError(f"unknown protocol '{name}'; known: {', '.join(PROTOCOLS)}") from None
 
 
-def jpeg_roundtrip(frames: np.ndarray, quality: int = 95) -> np.ndarray:
+def jpeg_roundtrip(frames: np.ndarray, quality: int = 95, out: np.ndarray | None = None) -> np.ndarray:
     """frames (T,H,W,3) or (H,W,3) uint8 -> the same frames after a JPEG encode/decode at ``quality``
-    with 4:4:4 chroma (PIL, as the released evaluator saved its prepared frames)."""
+    with 4:4:4 chroma (PIL, as the released evaluator saved its prepared frames); written into ``out`` (of
+    frames' shape; ``frames`` itself is allowed: each frame is encoded before its place is written) when given."""
     from PIL import Image
 
     single = frames.ndim == 3
     batch = frames[None] if single else frames
-    out = np.empty_like(batch)
-    for t, frame in enumerate(batch):
+    if out is None:
+        out = np.empty_like(frames)
+    elif out.shape != frames.shape or out.dtype != np.uint8:
+        raise ValueError(f"out must be uint8 {frames.shape}, got {out.dtype} {out.shape}")
+    result, out = out, (out[None] if single else out)
+
+    def roundtrip(t: int) -> None:
         buffer = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(frame)).save(buffer, format="JPEG", quality=quality, subsampling=0)
+        Image.fromarray(np.ascontiguousarray(batch[t])).save(buffer, format="JPEG", quality=quality, subsampling=0)
         buffer.seek(0)
         with Image.open(buffer) as im:
-            out[t] = np.asarray(im.convert("RGB"))
-    return out[0] if single else out
+            out[t] = np.asarray(im if im.mode == "RGB" else im.convert("RGB"))
+
+    # Frames are independent and PIL releases the GIL while it encodes and decodes: a few threads share them.
+    with ThreadPoolExecutor(max_workers=usable_cores(min(4, max(len(batch), 1)))) as pool:
+        list(pool.map(roundtrip, range(len(batch))))
+    return result
 
 
 __all__ = ["Protocol", "PROTOCOLS", "DEFAULT_PROTOCOL", "Decoder", "get_protocol", "jpeg_roundtrip"]

@@ -26,6 +26,7 @@ import json
 import math
 import zipfile
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, TypeVar
@@ -34,6 +35,7 @@ import numpy as np
 
 from .. import jsonio
 from ..errors import BundleError
+from ..executors import usable_cores
 from ..folders import (BUNDLE_FILES, CONTACTS_FILE, DEPTH_FILE, FRAMES_DIR, MASKS_FILE,  # noqa: F401 (re-exported)
                        METADATA_FILE, PROMPT_FILE, SPEC_FILE, TRACKS_FILE, TRAJECTORIES_FILE, VIDEO_FILE, frame_name)
 from ..scene_spec.types import SceneSpec
@@ -301,8 +303,24 @@ class Sample:
 
     @functools.cached_property
     def frames(self) -> np.ndarray:
-        """(T,H,W,3) uint8 RGB from the PNG frames."""
-        return np.stack([self.frame(k) for k in range(self.n_frames)])
+        """(T,H,W,3) uint8 RGB from the PNG frames, decoded on a few threads (PNG decoding releases the GIL)."""
+        n = self.n_frames
+        if n < 2:
+            return np.stack([self.frame(k) for k in range(n)])
+        first = self.frame(0)
+        out = np.empty((n,) + first.shape, first.dtype)
+        out[0] = first
+
+        def decode(k: int) -> None:
+            frame = self.frame(k)
+            if frame.shape != first.shape:  # only without a resolution in metadata.json: as np.stack refuses
+                raise ValueError(f"frame {k} is {frame.shape}, frame 0 {first.shape}: all input arrays must "
+                                 "have the same shape")
+            out[k] = frame
+
+        with ThreadPoolExecutor(max_workers=usable_cores(min(4, n - 1))) as pool:
+            list(pool.map(decode, range(1, n)))
+        return out
 
     def frame(self, k: int) -> np.ndarray:
         """(H,W,3) uint8 RGB frame ``k``."""
@@ -471,8 +489,8 @@ def unverified_reason(identity: dict[str, Any]) -> str | None:
         if "verified" not in ident and ident.get("dataset") in ("rendered", "unknown", None):
             continue  # rendered by us (or nothing readable); a published set recorded before issue 32 counts
         if not ident.get("verified"):
-            name = " ".join(str(v) for v in (ident.get("dataset"), ident.get("version")) if v) or "the reference set"
-            return (f"the reference set {name} was not checked against its published MD5 "
+            name = " ".join(str(v) for v in (ident.get("dataset"), ident.get("version")) if v)
+            return (f"the reference set{' ' + name if name else ''} was not checked against its published MD5 "
                     f"({ident.get('verification') or 'no record of a check'}); import its .tar.gz or parts, or "
                     "download it, to check it")
     return None

@@ -92,21 +92,33 @@ def _check_depth_inputs(disparity: np.ndarray, depth_ref_m: np.ndarray) -> None:
                          "(T, H, W) with the same T; cut them to the common length first")
 
 
-def depth_validity(disparity: np.ndarray, depth_ref_m: np.ndarray) -> np.ndarray:
+def depth_validity(disparity: np.ndarray, depth_ref_m: np.ndarray,
+                   valid_ref: np.ndarray | None = None) -> np.ndarray:
     """disparity: (T, h, w); depth_ref_m: (T, H, W) m. Returns (T, H, W) bool: the pixels the disparity
     alignment and SI-MSE use, finite predicted disparity and reference depth in (0, 100) m. Computed once
-    per example and shared by both (``score_si_mse``, ``score_ate3d``)."""
+    per example and shared by both (``score_si_mse``, ``score_ate3d``). ``valid_ref``: the reference's part,
+    ``reference_depth_validity(depth_ref_m)``, when already known (once for all the samples of an example)."""
     _check_depth_inputs(disparity, depth_ref_m)
     shape_hw = depth_ref_m.shape[1:]
-    out = np.empty(depth_ref_m.shape, bool)
+    out = reference_depth_validity(depth_ref_m) if valid_ref is None else np.empty(depth_ref_m.shape, bool)
     tmp = np.empty(shape_hw, bool)
+    for t in range(depth_ref_m.shape[0]):
+        np.isfinite(disparity_frame(disparity, t, shape_hw), out=tmp)
+        np.logical_and(out[t] if valid_ref is None else valid_ref[t], tmp, out=out[t])
+    return out
+
+
+def reference_depth_validity(depth_ref_m: np.ndarray) -> np.ndarray:
+    """depth_ref_m: (T, H, W) m. Returns (T, H, W) bool: reference depth in (0, 100) m (``valid_reference_depth``,
+    frame by frame without clip-sized temporaries): the reference's part of ``depth_validity``."""
+    out = np.empty(depth_ref_m.shape, bool)
+    tmp = np.empty(depth_ref_m.shape[1:], bool)
     with np.errstate(invalid="ignore"):
         for t in range(depth_ref_m.shape[0]):
             z = depth_ref_m[t]
             # 0 < z < 100 excludes NaN and +-inf, so no separate isfinite(z) is needed.
             np.greater(z, 0, out=out[t])
             out[t] &= np.less(z, MAX_VALID_DEPTH_M, out=tmp)
-            out[t] &= np.isfinite(disparity_frame(disparity, t, shape_hw), out=tmp)
     return out
 
 
@@ -351,8 +363,10 @@ def ate3d(gen_tracks: np.ndarray, ref_visible: np.ndarray, gen_visible: np.ndarr
 
 
 def _validity(x) -> np.ndarray:
-    """The (T, H, W) pixels with valid reference depth and finite disparity, shared by the fit and SI-MSE."""
-    return x.shared("depth_validity", lambda: depth_validity(x.gen_disparity, x.ref_depth_m))
+    """The (T, H, W) pixels with valid reference depth and finite disparity, shared by the fit and SI-MSE (the
+    reference's part shared by the samples of an example)."""
+    valid_ref = x.reference_shared("valid_depth", lambda: reference_depth_validity(x.ref_depth_m))
+    return x.shared("depth_validity", lambda: depth_validity(x.gen_disparity, x.ref_depth_m, valid_ref))
 
 
 def _alignment(x) -> DepthAlignment:

@@ -56,17 +56,21 @@ def mask_centroids(masks: np.ndarray) -> np.ndarray:
     return out
 
 
-def centroid_l2_per_actor(ref_masks: np.ndarray, gen_masks: np.ndarray) -> np.ndarray:
-    """ref_masks, gen_masks: (T, N, H, W) bool. Returns (T, N) centroid distance / H, NaN if either mask is empty."""
+def centroid_l2_per_actor(ref_masks: np.ndarray, gen_masks: np.ndarray,
+                          ref_centroids: np.ndarray | None = None) -> np.ndarray:
+    """ref_masks, gen_masks: (T, N, H, W) bool. Returns (T, N) centroid distance / H, NaN if either mask is empty.
+    ``ref_centroids``: ``mask_centroids(ref_masks)`` when already known."""
     _check_masks(ref_masks, gen_masks)
     height = ref_masks.shape[2]
-    dist = np.linalg.norm(mask_centroids(ref_masks) - mask_centroids(gen_masks), axis=-1)
+    if ref_centroids is None:
+        ref_centroids = mask_centroids(ref_masks)
+    dist = np.linalg.norm(ref_centroids - mask_centroids(gen_masks), axis=-1)
     return dist / height
 
 
-def centroid_l2(ref_masks: np.ndarray, gen_masks: np.ndarray) -> MetricResult:
+def centroid_l2(ref_masks: np.ndarray, gen_masks: np.ndarray, ref_centroids: np.ndarray | None = None) -> MetricResult:
     """ref_masks, gen_masks: (T, N, H, W) bool. Returns nested-mean centroid L2 / H and (T,) per frame."""
-    return nested_mean(centroid_l2_per_actor(ref_masks, gen_masks))
+    return nested_mean(centroid_l2_per_actor(ref_masks, gen_masks, ref_centroids))
 
 
 def _mean_distance_to(src: np.ndarray, dst: np.ndarray) -> float:
@@ -114,7 +118,8 @@ def score_iou(x) -> MetricResult:
 
 
 def score_centroid_l2(x) -> MetricResult:
-    return centroid_l2(x.ref_masks, x.gen_masks)
+    ref_centroids = x.reference_shared("mask_centroids", lambda: mask_centroids(x.ref_masks))
+    return centroid_l2(x.ref_masks, x.gen_masks, ref_centroids)
 
 
 def score_chamfer(x) -> MetricResult:

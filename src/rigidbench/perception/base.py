@@ -17,7 +17,7 @@ plus one ``BACKENDS.add(BackendInfo(...))``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import MISSING, dataclass, fields, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -56,11 +56,16 @@ def save_arrays(obj, path: str | Path, compress: bool = True) -> None:
 
 
 def load_arrays(cls, path: str | Path):
-    """Read an array dataclass written by ``save_arrays`` (either format; no pickles)."""
+    """Read an array dataclass written by ``save_arrays`` (either format; no pickles). A field with a default
+    (a flag such as ``geometry_only``) is read back as a Python value, and takes its default in a file written
+    before it existed."""
     values = {}
     with np.load(path, allow_pickle=False) as z:
         for f in fields(cls):
-            if f.name in z.files:
+            if f.default is not MISSING:
+                if f.name in z.files:
+                    values[f.name] = z[f.name].item()
+            elif f.name in z.files:
                 values[f.name] = z[f.name]
             else:
                 shape = tuple(int(n) for n in z[_SHAPE + f.name])
@@ -92,7 +97,8 @@ class Perception:
     known point is visible and 0 elsewhere for exact backends), track_actor (P,) int index into
     the active actors; disparity (T,H,W) float32 (affine-invariant inverse depth). Background
     corners at their own times bg_times_s (Tb,) float64 seconds: bg_tracks (C,Tb,2) float32,
-    bg_confidence (C,Tb) float32 BGDrift weights (the tracker's 0/1 visibility).
+    bg_confidence (C,Tb) float32 BGDrift weights (the tracker's 0/1 visibility). geometry_only: the clip is no
+    render (a geometry-only twin, from its world state): the appearance measurements are not computed.
     """
 
     times_s: np.ndarray
@@ -105,6 +111,7 @@ class Perception:
     bg_times_s: np.ndarray
     bg_tracks: np.ndarray
     bg_confidence: np.ndarray
+    geometry_only: bool = False
 
     @property
     def n_frames(self) -> int:
@@ -123,28 +130,42 @@ class Perception:
 
         The background arrays are resampled from ``bg_times_s`` to the same timestamps (exact
         copies where those are the reference times already); reference times the background
-        arrays do not reach get NaN tracks and zero weight.
+        arrays do not reach get NaN tracks and zero weight. Where the clip's times are the reference
+        times already, the masks and the disparity are views of this perception's (the same values).
         """
 
         n = aligned_length(self.times_s, ref_times_s)
         dst = np.asarray(ref_times_s[:n], dtype=np.float64)
 
         def lin(x: np.ndarray, axis: int, src: np.ndarray, to: np.ndarray) -> np.ndarray:
-            return np.moveaxis(interpolate_linear(np.moveaxis(x, axis, 0), src, to), 0, axis).astype(x.dtype)
+            y = np.moveaxis(interpolate_linear(np.moveaxis(x, axis, 0), src, to), 0, axis)
+            # Along axis 0 the result is already a new C-contiguous array of x's dtype (a float one): no second
+            # copy of the clip-sized disparity; elsewhere astype lays the moved axes out in memory as before.
+            return y if axis == 0 and y.dtype == x.dtype else y.astype(x.dtype)
 
         def near(x: np.ndarray, axis: int, src: np.ndarray, to: np.ndarray) -> np.ndarray:
             return np.moveaxis(interpolate_nearest(np.moveaxis(x, axis, 0), src, to), 0, axis)
 
         src, bg_src = self.times_s, np.asarray(self.bg_times_s, dtype=np.float64)
+        # Frames already at the reference times, bit for bit: resampling returns the first n frames as they are,
+        # so the clip-sized arrays (frames on axis 0, C-contiguous as a fresh copy is) are taken as views of them.
+        on_time = (np.array_equal(np.asarray(src[:n], np.float64), dst)
+                   and bool(np.all(np.diff(np.asarray(src, np.float64)) > 0)))
+
+        def frames(x: np.ndarray, resample) -> np.ndarray:
+            if on_time and x.flags.c_contiguous and (resample is near or np.issubdtype(x.dtype, np.floating)):
+                return x[:n]
+            return resample(x, 0, src, dst)
+
         nb = aligned_length(bg_src, dst)
         bg_tracks = np.full((self.bg_tracks.shape[0], n, 2), np.nan, dtype=self.bg_tracks.dtype)
         bg_confidence = np.zeros((self.bg_confidence.shape[0], n), dtype=self.bg_confidence.dtype)
         if nb:
             bg_tracks[:, :nb] = lin(self.bg_tracks, 1, bg_src, dst[:nb])
             bg_confidence[:, :nb] = near(self.bg_confidence, 1, bg_src, dst[:nb])
-        return replace(self, times_s=dst, masks=near(self.masks, 0, src, dst), tracks=lin(self.tracks, 1, src, dst),
+        return replace(self, times_s=dst, masks=frames(self.masks, near), tracks=lin(self.tracks, 1, src, dst),
                        visibility=near(self.visibility, 1, src, dst), confidence=lin(self.confidence, 1, src, dst),
-                       disparity=lin(self.disparity, 0, src, dst), bg_times_s=dst.copy(), bg_tracks=bg_tracks,
+                       disparity=frames(self.disparity, lin), bg_times_s=dst.copy(), bg_tracks=bg_tracks,
                        bg_confidence=bg_confidence)
 
 

@@ -13,8 +13,8 @@ from ..errors import UserError
 from ..registry import LazyRegistry
 from .base import (SEED_RULE, FailureMode, FunctionPredictor, Kind, ModelInputs, PredictContext, Prediction, Predictor,
                    PredictorInfo, SAMPLE_SEED_RULE, example_seed, model_inputs, sample_seed)
-from .options import (CosmosOptions, HostedOptions, ModelOptions, WanOptions, audit_options, format_options,
-                      legacy_flags, model_options, options_type, parse_model_args, resolve_options)
+from .options import (CosmosOptions, HostedOptions, ModelOptions, TwinOptions, WanOptions, audit_options,
+                      format_options, legacy_flags, model_options, options_type, parse_model_args, resolve_options)
 
 PREDICTORS: LazyRegistry[PredictorInfo] = LazyRegistry("predictor")
 
@@ -44,6 +44,12 @@ _failure_mode("mass", "counterfactuals:mass", "re-simulated with actor masses al
               needs_blender=True)
 _failure_mode("depth-offset", "counterfactuals:depth_offset", "actors re-rendered 0.5 s m nearer the camera",
               needs_blender=True)
+# The physical envelope: the reference re-simulated with its initial state and materials drawn within what one
+# frame cannot resolve (configs/envelope.yaml); one twin per sample, seeded by the sample's seed.
+PREDICTORS.add(PredictorInfo("twin", "rigidbench.predictors.twins:TwinPredictor",
+                             "physical twin: initial state and materials perturbed within the envelope x scale "
+                             "(default: the severity)", Kind.FAILURE_MODE, needs_blender=True, writes_state=True,
+                             options=TwinOptions))
 
 # Video models run locally through diffusers (paper, appendix B.1); their options: predictors/options.py.
 PREDICTORS.add(PredictorInfo("wan-2.2", "rigidbench.predictors.wan:WanPredictor",
@@ -104,6 +110,7 @@ def failure_modes() -> tuple[str, ...]:
 
 
 __all__ = ["PREDICTORS", "SEED_RULE", "CosmosOptions", "FailureMode", "FunctionPredictor", "HostedOptions", "Kind",
-           "ModelInputs", "ModelOptions", "PredictContext", "Prediction", "Predictor", "PredictorInfo", "WanOptions",
+           "ModelInputs", "ModelOptions", "PredictContext", "Prediction", "Predictor", "PredictorInfo", "TwinOptions",
+           "WanOptions",
            "audit_options", "example_seed", "sample_seed", "SAMPLE_SEED_RULE", "failure_modes", "format_options", "legacy_flags", "load_entry_points",
            "model_inputs", "model_options", "options_type", "parse_model_args", "predictor_info", "resolve_options"]

@@ -17,7 +17,9 @@ suffix, and the paper's negative prompt.
 
 Seeds: ``--seed`` is a base seed. The predict stage gives each example its own seed,
 ``example_seed(base, example id)`` (a SHA-256 of both, so it is the same on every machine and in
-every Python process), passes it as ``ctx.seed`` and records it per example in generation.json.
+every Python process), passes it as ``ctx.seed`` and records it per example in generation.json. With several
+samples per example (``predict --samples K``) sample k gets ``sample_seed(base, example id, k)``; sample 0's is
+the example's seed, so one sample per example is seeded as before.
 """
 
 from __future__ import annotations
@@ -106,9 +108,13 @@ class PredictContext:
     cache), the failure-mode severity in [0, 1], the generation seed (the predict stage passes each example
     its own, ``example_seed(--seed, example id)``; it is the base seed in settings), for predictors that render a
     directory in which to keep their bundle (None: a temporary one), the output directory of the run
-    (where a predictor may keep per-example state such as a hosted prediction id) and model options
+    (where a predictor may keep per-example state such as a hosted prediction id), model options
     from the command line (e.g. offload, checkpoint, concurrency; ``predictors.options.model_options``
-    makes them: JSON values, only those given), which a predictor reads typed with ``Predictor.options``."""
+    makes them: JSON values, only those given), which a predictor reads typed with ``Predictor.options``,
+    and ``item``: the name of the prediction being made, ``<id>`` or ``<id>.s<k>`` for sample k of several
+    (``folders.sample_item``; None: the example's own id). A predictor that keeps state of its own per
+    prediction (a hosted model's paid prediction id) keys it by ``item_of(sample)``, so two samples of one
+    example never share it."""
 
     run: RunContext = field(default_factory=RunContext)
     severity: float = 1.0
@@ -116,10 +122,15 @@ class PredictContext:
     keep_bundle_dir: Path | None = None
     out_dir: Path | None = None
     options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    item: str | None = None
 
     @property
     def registry(self):
         return self.run.registry
+
+    def item_of(self, sample) -> str:
+        """The name of the prediction of ``sample`` being made: ``item``, else the example's id (its folder)."""
+        return self.item or Path(sample.path).name
 
     def option(self, name: str, default: Any = None) -> Any:
         """A model option, or ``default`` when it was not given (None counts as not given)."""
@@ -175,7 +186,8 @@ class PredictorInfo:
 class Predictor(ABC):
     """One video model (or failure mode); ``info`` is its registry entry.
 
-    ``paid``: each example is a paid call to a hosted API (``--dry-run`` and ``audit`` count them);
+    ``paid``: each prediction (each sample of each example) is a paid call to a hosted API (``--dry-run`` and
+    ``audit`` count them);
     ``concurrency(ctx)``: how many examples the predict stage may run at once in threads;
     ``options_type``: the dataclass of its options (a ``predictors.options.ModelOptions``; None: none), which
     ``options(ctx)`` reads from ``ctx.options``."""
@@ -248,6 +260,10 @@ class FailureMode(Predictor):
     def predict(self, sample, ctx: PredictContext) -> Prediction:
         options = {"registry": ctx.registry, "bundle_dir": ctx.keep_bundle_dir,
                    "scratch_dir": PredictionsFolder(ctx.out_dir).scratch_dir if ctx.out_dir is not None else None}
+        if "seed" in self._accepts and ctx.item not in (None, getattr(sample, "sample_id", None)):
+            # sample k >= 1 of a random failure mode (one taking a ``seed``, e.g. camera-shake): its own draw, from
+            # the sample's seed; sample 0 keeps the mode's fixed draw, so one sample per example is as before
+            options["seed"] = int(ctx.seed)
         return self.function(sample, float(ctx.severity), **{k: v for k, v in options.items() if k in self._accepts})
 
     def settings(self, ctx: PredictContext) -> dict[str, Any]:

@@ -176,7 +176,7 @@ def scratch_bundle_dir(sample_id: str, scratch_dir: str | Path | None = None) ->
 
 
 @contextlib.contextmanager
-def _blender_output_silenced() -> Iterator[None]:
+def blender_output_silenced() -> Iterator[None]:
     """Send file descriptor 1 (where Blender prints every render step) to /dev/null for the block."""
     sys.stdout.flush()
     saved = os.dup(1)
@@ -190,9 +190,10 @@ def _blender_output_silenced() -> Iterator[None]:
         os.close(saved)
 
 
-def render_counterfactual(sample, spec, registry, out_dir: str | Path, overrides=None) -> Path:
-    """Simulate and render ``spec`` like the reference ``sample`` (its preset, device kind and camera)
-    into the new bundle directory ``out_dir``; returns it. Raises PredictionError naming the example."""
+def render_target(sample, spec, registry) -> tuple:
+    """(render preset, Cycles device request) that re-render ``spec`` like the reference ``sample``: its preset,
+    which must still be configured at its resolution, and its device kind (CPU when the reference was rendered
+    on the CPU). A PredictionError naming the example otherwise, or when ``spec`` has no camera."""
     ref_id = sample.sample_id
     preset_name = sample.metadata.get("preset")
     try:
@@ -207,8 +208,16 @@ def render_counterfactual(sample, spec, registry, out_dir: str | Path, overrides
         raise PredictionError(f"example {ref_id}: {sample.path / 'scene_spec.json'} has no camera; re-render "
                                   "the reference with `rigidbench render`")
     device = "cpu" if sample.metadata.get("render", {}).get("device_kind", "CPU") == "CPU" else "auto"
+    return preset, device
+
+
+def render_counterfactual(sample, spec, registry, out_dir: str | Path, overrides=None) -> Path:
+    """Simulate and render ``spec`` like the reference ``sample`` (its preset, device kind and camera)
+    into the new bundle directory ``out_dir``; returns it. Raises PredictionError naming the example."""
+    ref_id = sample.sample_id
+    preset, device = render_target(sample, spec, registry)
     try:
-        with _blender_output_silenced():
+        with blender_output_silenced():
             path = render_spec(spec, registry, preset, Path(out_dir), device=device, overrides=overrides)
     except (RuntimeError, BundleError) as exc:
         raise PredictionError(f"example {ref_id}: the counterfactual render failed: {exc}") from exc
@@ -245,6 +254,18 @@ def carried_tracks(sample, rotations: np.ndarray, positions_m: np.ndarray, masks
     return uv_all, vis_all
 
 
+def world_state(sample, quat_wxyz: np.ndarray, positions_m: np.ndarray, masks: np.ndarray, depth_m: np.ndarray,
+                fps: float) -> WorldState:
+    """The world state of a re-simulated clip of reference ``sample``: quat_wxyz (N,T,4) and positions_m (N,T,3)
+    of all N actors as shown, masks (T,N,H,W) bool and depth_m (T,H,W) of its passes, at ``fps``; the
+    reference's ground-truth points carried by these poses (``carried_tracks``), a locked camera."""
+    T = masks.shape[0]
+    tracks, vis = carried_tracks(sample, quat_to_matrix(quat_wxyz[:, :T]), positions_m[:, :T], masks, depth_m)
+    affine, flow = static_background(T)
+    return WorldState(np.arange(T) / float(fps), masks[:, sample.active_indices], depth_m.astype(np.float32), tracks,
+                      vis, affine, flow)
+
+
 def prediction_from_bundle(sample, cf, offsets_m: dict[str, np.ndarray] | None = None):
     """A ``Prediction`` showing counterfactual bundle ``cf`` of reference ``sample``; ``offsets_m``
     (actor name -> (T,3) m) are the render-time displacements ``cf`` was rendered with."""
@@ -253,19 +274,18 @@ def prediction_from_bundle(sample, cf, offsets_m: dict[str, np.ndarray] | None =
     positions = traj.positions_m[:, :T].copy()
     for name, off in (offsets_m or {}).items():
         positions[cf.actor_names.index(name)] += np.asarray(off, np.float64)[:T]
-    masks = cf.masks
-    tracks, vis = carried_tracks(sample, quat_to_matrix(traj.quat_wxyz[:, :T]), positions, masks, cf.depth)
-    times = np.arange(T) / float(cf.fps)
-    affine, flow = static_background(T)
-    state = WorldState(times, masks[:, sample.active_indices], cf.depth.astype(np.float32), tracks, vis, affine, flow)
-    return Prediction(cf.frames, times, state)
+    state = world_state(sample, traj.quat_wxyz, positions, cf.masks, cf.depth, cf.fps)
+    return Prediction(cf.frames, state.times_s, state)
 
 
 # -- predictors -------------------------------------------------------------------------------------
 
 
-def _rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, offsets_m=None,
-                         scratch_dir: str | Path | None = None):
+def rendered_prediction(sample, spec, registry, bundle_dir: str | Path | None, offsets_m=None,
+                        scratch_dir: str | Path | None = None):
+    """The Prediction of ``spec`` re-simulated and rendered like reference ``sample`` (``render_counterfactual``),
+    its bundle kept in ``bundle_dir`` or (None) in a scratch folder removed afterwards (``scratch_bundle_dir``);
+    ``offsets_m``: render-time actor displacements (``blender.overrides.RenderOverrides``)."""
     overrides = RenderOverrides(offsets_m=offsets_m) if offsets_m else None
     if bundle_dir is not None:
         path = render_counterfactual(sample, spec, registry, bundle_dir, overrides)
@@ -282,7 +302,7 @@ def physics_counterfactual(sample, change: str, severity: float, bundle_dir: str
     base = registry if registry is not None else packaged_registry()
     spec, reg = PHYSICS_CHANGES[change](sample.spec, base, float(severity))
     log.info("example %s: rendering the %s counterfactual at severity %.3g", sample.sample_id, change, severity)
-    return _rendered_prediction(sample, spec, reg, bundle_dir, scratch_dir=scratch_dir)
+    return rendered_prediction(sample, spec, reg, bundle_dir, scratch_dir=scratch_dir)
 
 
 def gravity(sample, severity: float, bundle_dir: str | Path | None = None, registry: Registry | None = None,
@@ -316,11 +336,12 @@ def depth_offset(sample, severity: float, bundle_dir: str | Path | None = None, 
     log.info("example %s: rendering actors %.3g m nearer the camera", sample.sample_id,
              MAX_DEPTH_OFFSET_M * severity)
     reg = registry if registry is not None else packaged_registry()
-    return _rendered_prediction(sample, sample.spec, reg, bundle_dir, offsets, scratch_dir)
+    return rendered_prediction(sample, sample.spec, reg, bundle_dir, offsets, scratch_dir)
 
 
 __all__ = ["PHYSICS_CHANGES", "gravity_change", "restitution_change", "friction_change",
-           "mass_change", "depth_offsets", "render_counterfactual", "carried_tracks", "prediction_from_bundle",
+           "mass_change", "depth_offsets", "render_target", "render_counterfactual", "carried_tracks", "world_state",
+           "prediction_from_bundle", "rendered_prediction", "blender_output_silenced",
            "physics_counterfactual", "gravity", "restitution", "friction", "mass", "depth_offset",
            "scratch_bundle_dir", "process_scratch",
            "MAX_GRAVITY_FACTOR", "MAX_MASS_FACTOR", "MAX_DEPTH_OFFSET_M"]

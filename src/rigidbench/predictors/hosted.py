@@ -15,7 +15,9 @@ for models that take one, the paper's negative prompt. No seed is sent: the pape
 its calls and none is a seed (``seed_field`` in the YAML sends each example's seed, derived from ``--seed`` and
 the example id, to a model that takes one).
 
-Resume (``OUT/.hosted/<id>.json``, written atomically and fsynced): before a prediction is created an
+Resume (``OUT/.hosted/<item>.json``, written atomically and fsynced; the item is the prediction's name,
+``PredictContext.item``: ``<id>``, or ``<id>.s<k>`` for sample k of several, so each sample is paid for once and
+never adopts another sample's prediction): before a prediction is created an
 *intent* is stored there (the model, a SHA-256 of the exact input sent, and the time), and right after
 Replicate answers, the prediction's id. A rerun of an example with a stored id fetches that prediction
 instead of creating a new one: a succeeded prediction is downloaded again, one still running is waited
@@ -33,8 +35,8 @@ no more polls are made; requests already sent get ``client.stop_grace_s`` (3 s) 
 by then has its id saved and an output that has already succeeded is downloaded (it was paid for, and
 Replicate deletes it after an hour); then they are cut off. A creation cut off keeps its intent, so the rerun
 adopts the prediction it made, and a prediction cut off while running or downloading keeps its id.
-Stale temporaries of an example (``.hosted/.<id>.*.part.mp4``, ``.hosted/.<id>.json.*.tmp``) are removed
-when the example runs again.
+Stale temporaries of a prediction (``.hosted/.<item>.*.part.mp4``, ``.hosted/.<item>.json.*.tmp``) are removed
+when it runs again (only its own: not those of another sample of the example, which may be downloading).
 """
 
 from __future__ import annotations
@@ -341,6 +343,7 @@ class HostedPredictor(Predictor):
     def __init__(self, info: PredictorInfo):
         super().__init__(info)
         self._lock = threading.Lock()
+        self._adopting = threading.Lock()
         self._configs: dict[tuple, HostedConfig] = {}
         self._client: ReplicateClient | None = None
         self._state_dirs: set[Path] = set()
@@ -415,7 +418,7 @@ class HostedPredictor(Predictor):
                "headers": {"Authorization": f"Bearer ${TOKEN_ENV}", "Prefer": "wait"},
                "body": {"input": self._inputs(model, inputs, image, ctx)}}
         if ctx.out_dir is not None:
-            state = _read_state(PredictionsFolder(ctx.out_dir).hosted_state(Path(sample.path).name))
+            state = _read_state(PredictionsFolder(ctx.out_dir).hosted_state(ctx.item_of(sample)))
             if state and "prediction_id" in state and state.get("status") not in RESTART_STATUSES:
                 out["resumes_prediction"] = state["prediction_id"]
             elif state and "intent" in state:
@@ -457,10 +460,13 @@ class HostedPredictor(Predictor):
         return record
 
     def _clean_temporaries(self, state_dir: Path, sample_id: str) -> None:
-        """Remove what a killed run left of this example: partial downloads and unrenamed state files."""
-        stem = glob.escape(f".{sample_id}.")
-        for pattern in (f"{stem}*.part*", f"{glob.escape(f'.{sample_id}.json.')}*.tmp"):
+        """Remove what a killed run left of this prediction: partial downloads (``.<item>.<random>.part<ext>``,
+        not another sample's ``.<item>.s<k>.<random>.part<ext>``) and unrenamed state files."""
+        partial = re.compile(re.escape(f".{sample_id}.") + r"[A-Za-z0-9_]+\.part(\.[A-Za-z0-9]+)?")
+        for pattern in (f"{glob.escape(f'.{sample_id}.')}*.part*", f"{glob.escape(f'.{sample_id}.json.')}*.tmp"):
             for stale in state_dir.glob(pattern):
+                if pattern.endswith(".part*") and not partial.fullmatch(stale.name):
+                    continue
                 try:
                     stale.unlink()
                     log.debug("removed %s, left by an interrupted run", stale)
@@ -470,7 +476,7 @@ class HostedPredictor(Predictor):
     def predict(self, sample, ctx: PredictContext) -> Prediction:
         cfg, model = self.config(ctx), self.model(ctx)
         client = self._get_client(ctx)
-        sample_id = Path(sample.path).name
+        sample_id = ctx.item_of(sample)  # the prediction's name: its state, download and messages
         if ctx.out_dir is None:
             raise PredictionError(f"example {sample_id}: hosted models need the run's output directory "
                                   "(run them through the predict stage)")
@@ -506,11 +512,13 @@ class HostedPredictor(Predictor):
                 replaced = state["prediction_id"]
         elif state and same:  # an intent without an id: the creation may have reached Replicate
             replaced = state.get("replaces_prediction")
-            found = self._adopt(client, model, state["intent"], sample_id, state_path, deadline, stats)
+            with self._adopting:  # one adoption at a time: two samples with the same input never take one prediction
+                found = self._adopt(client, model, state["intent"], sample_id, state_path, deadline, stats)
+                if found is not None:
+                    _save_state(state_path, {**state, "prediction_id": found["id"], "status": found.get("status"),
+                                             "created_at": found.get("created_at"), "adopted": True})
             if found is not None:
                 adopted = True
-                _save_state(state_path, {**state, "prediction_id": found["id"], "status": found.get("status"),
-                                         "created_at": found.get("created_at"), "adopted": True})
                 prediction = self._resume(client, found["id"], sample_id, deadline, stats, repay)
                 resumed = prediction is not None
                 if prediction is None:
@@ -604,15 +612,16 @@ class HostedPredictor(Predictor):
                                   f"({state_path}) and the account's predictions could not be checked for it ({exc}); "
                                   "not creating another one. Rerun later, or check https://replicate.com/predictions "
                                   f"and delete {state_path} to pay for a new one") from None
-        same_model = [p for p in listed if p.get("model") in (None, intent.get("model"))]
+        # a prediction another state holds is never adopted: the samples of a model sent no seed share one input
+        claimed = _claimed_ids(state_path.parent, state_path.name)
+        same_model = [p for p in listed if p.get("model") in (None, intent.get("model")) and p.get("id") not in claimed]
         exact = [p for p in same_model if isinstance(p.get("input"), dict)
                  and input_hash(p["input"]) == intent.get("input_sha256")]
         how = "the same input"
         if not exact:  # Replicate may store an inline image as a URL of its own: compare everything else
             field = intent.get("image_field")
-            claimed = _claimed_ids(state_path.parent, state_path.name)
             exact = [p for p in same_model if isinstance(p.get("input"), dict) and field in p["input"]
-                     and not str(p["input"][field]).startswith("data:") and p["id"] not in claimed
+                     and not str(p["input"][field]).startswith("data:")
                      and input_hash(p["input"], without=field) == intent.get("input_sha256_without_image")]
             how = "the same input apart from the image (which Replicate stores as a URL)"
             if len(exact) > 1:

@@ -130,7 +130,7 @@ def _affine(angle_deg: float, dx: float, dy: float, centre: tuple[float, float])
 def camera_shake(sample, severity: float, seed: int = 0) -> Prediction:
     pred = reference(sample, 0.0)
     t, h, w = pred.frames.shape[:3]
-    rng = np.random.default_rng(seed + sample_seed(sample))
+    rng = np.random.default_rng(seed + scene_seed(sample))
     amp = SHAKE_AMPLITUDE * h * severity
     affines = np.stack([_affine(0.0, 0.0, 0.0, (w / 2 - 0.5, h / 2 - 0.5))] + [
         _affine(SHAKE_ROTATION_DEG * severity * rng.uniform(-1, 1), amp * rng.uniform(-1, 1),
@@ -174,5 +174,5 @@ def background_wobble(sample, severity: float) -> Prediction:
     return pred
 
 
-def sample_seed(sample) -> int:
+def scene_seed(sample) -> int:
     return int(sample.metadata.get("seed", 0))

@@ -316,6 +316,21 @@ class HostedOptions(ModelOptions):
     repay_expired: bool = option(False, "pay for a new prediction when a paid one's output has expired at the API")
 
 
+@dataclass(frozen=True)
+class TwinOptions(ModelOptions):
+    """``twin``: a physical twin of the reference (``predictors.twins``)."""
+
+    scale: float | None = option(None, "multiplies every deviation of the envelope (1: as configured, 0: the "
+                                       "reference itself; may exceed 1)", minimum=0, shown="the severity")
+    geometry_only: bool = option(False, "no path tracing: trajectories, masks, tracks and depth from the simulator "
+                                        "and the data passes; the video shows the actors' silhouettes on the first "
+                                        "frame and the appearance measurements are skipped")
+    envelope: Path | None = option(None, "the envelope configuration file", shown="envelope.yaml of the configs")
+    spec_dir: Path | None = option(None, "scene specs rebuilt for imported examples, <spec_dir>/<id>/scene_spec.json "
+                                         "(the resimulation folder of `rigidbench envelope`); used where a bundle has "
+                                         "none; such twins are geometry-only", shown="none")
+
+
 # -- the command line -------------------------------------------------------------------------------------
 
 
@@ -458,6 +473,6 @@ def format_options(info: PredictorInfo, indent: str = "    ") -> str:
 
 
 __all__ = ["CosmosOptions", "HostedOptions", "LEGACY_FLAGS", "LocalOptions", "ModelOptions", "OptionSpec",
-           "WanOptions", "audit_options", "format_options", "legacy_flags", "model_options", "option",
+           "TwinOptions", "WanOptions", "audit_options", "format_options", "legacy_flags", "model_options", "option",
            "option_specs", "options_type", "parse_model_args", "resolve_options",
            "unknown_option"]

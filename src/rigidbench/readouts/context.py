@@ -75,6 +75,11 @@ class ReadoutContext:
             self._shared[key] = compute()
         return self._shared[key]
 
+    def reference_shared(self, key: str, compute: Callable[[], Any]) -> Any:
+        """``compute()`` of a quantity of the reference alone (its trajectory, its masks), once for all the
+        samples of an example when the evaluator shares the reference side (``MetricInputs.reference_shared``)."""
+        return self.inputs.reference_shared(f"readout:{key}", compute)
+
 
 def context_from_sample(sample, inputs: MetricInputs, iddrift: float | None = None) -> ReadoutContext:
     """The ReadoutContext of reference bundle ``sample`` and one generated clip's ``inputs``."""

@@ -228,11 +228,13 @@ def _sample_reference(ref: np.ndarray, t_ref: np.ndarray, tau: np.ndarray) -> np
 
 
 def _warp_sse(gen: np.ndarray, ref: np.ndarray, t: np.ndarray, t_ref: np.ndarray, speeds: np.ndarray,
-              offsets: np.ndarray, min_compared: int, outlier: float) -> tuple[np.ndarray, np.ndarray]:
+              offsets: np.ndarray, min_compared: int, outlier: float,
+              pred: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """SSE (each actor-frame's squared error capped at outlier^2) and number compared on the (S, D) grid;
-    SSE inf where fewer than min_compared actor-frames."""
-    tau = speeds[:, None, None] * t[None, None, :] + offsets[None, :, None]  # (S,D,T)
-    pred = _sample_reference(ref, t_ref, tau)  # (N,S,D,T,3)
+    SSE inf where fewer than min_compared actor-frames. ``pred``: the reference sampled on the grid
+    (``_warp_grid``) when already known."""
+    if pred is None:
+        pred = _warp_grid(ref, t, t_ref, speeds, offsets)
     diff = pred - gen[:, None, None, :, :]
     sq = np.minimum(np.sum(diff * diff, axis=-1), outlier * outlier)  # (N,S,D,T); NaN stays NaN
     ok = np.isfinite(sq)
@@ -242,7 +244,33 @@ def _warp_sse(gen: np.ndarray, ref: np.ndarray, t: np.ndarray, t_ref: np.ndarray
     return sse, n
 
 
-def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: float = 0.01) -> TimeWarp:
+def _warp_grid(ref: np.ndarray, t: np.ndarray, t_ref: np.ndarray, speeds: np.ndarray,
+               offsets: np.ndarray) -> np.ndarray:
+    """(N,S,D,T,3): the reference displacements at s t + d for every speed s and offset d of the grid."""
+    tau = speeds[:, None, None] * t[None, None, :] + offsets[None, :, None]  # (S,D,T)
+    return _sample_reference(ref, t_ref, tau)
+
+
+def _matching_instants(gen: np.ndarray, ref: np.ndarray, t: np.ndarray, t_ref: np.ndarray, centre: np.ndarray,
+                       usable: np.ndarray, fps: float, step: float) -> np.ndarray:
+    """(T,) for each usable generated frame k, the reference instant within MATCH_WINDOW_FRAMES of ``centre[k]``
+    (searched in steps of ``step`` s) whose positions are nearest the generated ones; NaN where the best is at
+    the search window's edge (not a minimum) or the window is empty."""
+    taus = np.full(t.size, np.nan)
+    for k in np.flatnonzero(usable):
+        lo = max(0.0, centre[k] - MATCH_WINDOW_FRAMES / fps)
+        hi = min(t_ref[-1], centre[k] + MATCH_WINDOW_FRAMES / fps)
+        if hi <= lo:
+            continue
+        cand = np.arange(lo, hi + 0.5 * step, step)
+        dist = np.sum((_sample_reference(ref, t_ref, cand) - gen[:, k][:, None]) ** 2, axis=(0, 2))
+        m = int(np.argmin(dist))
+        taus[k] = cand[m] if 0 < m < cand.size - 1 or cand[m] in (0.0, t_ref[-1]) else np.nan
+    return taus
+
+
+def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: float = 0.01,
+                  memo: dict | None = None) -> TimeWarp:
     """gen (N,T,3) and ref (N,T_ref,3) displacements from frame 0 (m) of the same actors at frames k / fps
     (the reference may be longer: a fast clip shows its later frames); NaN = no position. Finds (s, d) minimising sum |gen(t_k) - ref(s t_k + d)|^2 over the actor-frames where both
     exist (the reference is held at rest before t = 0 and undefined after its last frame), each error capped
@@ -250,7 +278,9 @@ def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: fl
     generated actor-frames (and 3 frames) to be compared: a grid over s in
     SPEED_RANGE (step SPEED_STEP) and d in [-(clip length), +(clip length) / 2] in half frames, then a refinement in time (see MATCH_WINDOW_FRAMES): each generated frame's best
     matching reference instant tau_k, and the least-squares line tau_k = s t_k + d through the informative
-    frames, whose standard errors are reported (TimeWarp.grid["informative_frames"] counts them). NaN with a reason when the reference moves less than ``min_motion_m``."""
+    frames, whose standard errors are reported (TimeWarp.grid["informative_frames"] counts them). NaN with a reason when the reference moves less than ``min_motion_m``.
+    ``memo``: a dict kept between calls with the same ``ref`` and ``fps`` (the samples of one example), where
+    the reference sampled on the grid is kept for each generated length."""
     gen, ref = np.asarray(gen, np.float64), np.asarray(ref, np.float64)
     t = np.arange(gen.shape[1]) / float(fps)
     t_ref = np.arange(ref.shape[1]) / float(fps)
@@ -271,7 +301,14 @@ def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: fl
     span = max(t[-1], t_ref[-1])
     offsets = np.arange(-span, 0.5 * span + 1e-9, 0.5 / fps)
     outlier = WARP_OUTLIER_SHARE * float(np.nanmax(np.linalg.norm(ref, axis=-1)))
-    sse, _ = _warp_sse(gen, ref, t, t_ref, speeds, offsets, min_compared, outlier)
+    if memo is None:
+        pred = _warp_grid(ref, t, t_ref, speeds, offsets)
+    else:
+        key = ("grid", t.size, float(fps))
+        if key not in memo:
+            memo[key] = _warp_grid(ref, t, t_ref, speeds, offsets)
+        pred = memo[key]
+    sse, _ = _warp_sse(gen, ref, t, t_ref, speeds, offsets, min_compared, outlier, pred)
     if not np.isfinite(sse).any():
         return TimeWarp(float("nan"), float("nan"), reason="no speed and offset compare enough frames")
     i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
@@ -284,17 +321,7 @@ def fit_time_warp(gen: np.ndarray, ref: np.ndarray, fps: float, min_motion_m: fl
     usable = finite.all(axis=0)
     n_informative, line_se = 0, (float("nan"), float("nan"))
     for _ in range(3):
-        centre = s * t + d
-        taus = np.full(t.size, np.nan)
-        for k in np.flatnonzero(usable):
-            lo = max(0.0, centre[k] - MATCH_WINDOW_FRAMES / fps)
-            hi = min(t_ref[-1], centre[k] + MATCH_WINDOW_FRAMES / fps)
-            if hi <= lo:
-                continue
-            cand = np.arange(lo, hi + 0.5 * step, step)
-            dist = np.sum((_sample_reference(ref, t_ref, cand) - gen[:, k][:, None]) ** 2, axis=(0, 2))
-            m = int(np.argmin(dist))
-            taus[k] = cand[m] if 0 < m < cand.size - 1 or cand[m] in (0.0, t_ref[-1]) else np.nan
+        taus = _matching_instants(gen, ref, t, t_ref, s * t + d, usable, fps, step)
         speed_at = np.interp(taus, t_ref, v_ref)
         info = np.isfinite(taus) & (taus > 0.5 / fps) & (taus < t_ref[-1]) & (speed_at > MIN_MATCH_SPEED)
         n_informative = int(info.sum())

@@ -108,7 +108,8 @@ def reference_frames(ctx) -> np.ndarray:
 def disappears(ctx, a: int) -> dict:
     x = ctx.inputs
     ref_k = reference_frames(ctx)
-    ref_area = x.ref_masks[:, a].reshape(x.ref_masks.shape[0], -1).sum(axis=1)[ref_k]
+    ref_area = ctx.reference_shared(f"mask_area:{a}", lambda: x.ref_masks[:, a].reshape(x.ref_masks.shape[0], -1)
+                                    .sum(axis=1))[ref_k]
     gen_area = x.gen_masks[:, a].reshape(x.gen_masks.shape[0], -1).sum(axis=1)
     hit = (ref_k >= 0) & (gen_area < DISAPPEAR_MIN_PX) & (ref_area >= IN_VIEW_MIN_PX)
     return {"raised": bool(hit.sum() >= MIN_FRAMES), "frames": _frames(hit), "reference_frames": ref_k[hit]}
@@ -117,7 +118,14 @@ def disappears(ctx, a: int) -> dict:
 def duplicates(ctx, a: int) -> dict:
     x = ctx.inputs
     ref_k = reference_frames(ctx)
-    hit = np.array([k >= 0 and _splits(x.gen_masks[t, a]) and not _splits(x.ref_masks[k, a])
+    ref_splits = ctx.reference_shared(f"splits:{a}", dict)  # reference frame -> whether its mask splits
+
+    def splits_in_reference(k: int) -> bool:
+        if k not in ref_splits:
+            ref_splits[k] = _splits(x.ref_masks[k, a])
+        return ref_splits[k]
+
+    hit = np.array([k >= 0 and _splits(x.gen_masks[t, a]) and not splits_in_reference(int(k))
                     for t, k in enumerate(ref_k)], bool)
     return {"raised": bool(hit.sum() >= MIN_FRAMES), "frames": _frames(hit), "reference_frames": ref_k[hit]}
 

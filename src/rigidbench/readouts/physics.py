@@ -136,8 +136,10 @@ def readout_world(ctx) -> dict:
 
 def time_warp(ctx, fit: str = "frame0"):
     """The example's TimeWarp (playback speed and offset against the reference), computed once per fit."""
+    memo = ctx.reference_shared("time_warp", dict)  # the reference on the warp grid, shared by fits and samples
     return ctx.shared(f"warp:{fit}", lambda: fit_time_warp(generated_displacements(ctx, fit),
-                                                           reference_displacements(ctx), ctx.fps, MIN_MOTION_M))
+                                                           reference_displacements(ctx), ctx.fps, MIN_MOTION_M,
+                                                           memo=memo))
 
 
 def readout_speed(ctx) -> dict:
@@ -155,8 +157,10 @@ def readout_speed(ctx) -> dict:
 
 
 def _reference_window(ctx, a: int):
-    ref = np.asarray(ctx.ref_positions_m, np.float64)[a, :, 2]
-    return ballistic_window(np.arange(ref.size) / ctx.fps, ref)
+    def compute():
+        ref = np.asarray(ctx.ref_positions_m, np.float64)[a, :, 2]
+        return ballistic_window(np.arange(ref.size) / ctx.fps, ref)
+    return ctx.reference_shared(f"ballistic_window:{a}", compute)
 
 
 def _gravity_fits(ctx, fit: str) -> list[dict]:
@@ -223,6 +227,11 @@ def readout_gravity(ctx) -> dict:
             "value_clip_fit": clip_best["g"] if clip_best else float("nan"), "actors": actors, "reason": None}
 
 
+def _reference_bounce(ctx, a: int):
+    ref = np.asarray(ctx.ref_positions_m, np.float64)[a, :, 2]
+    return bounce_coefficient(np.arange(ref.size) / ctx.fps, ref)
+
+
 def readout_restitution(ctx) -> dict:
     """e^ = -v_after / v_before at the first contact of each free actor's generated height; the example's
     value is the first actor with one. ``reference`` is the same fit on the simulated trajectory, ``nominal``
@@ -236,8 +245,7 @@ def readout_restitution(ctx) -> dict:
                            "reason": "touches another body at frame 0 in the reference: no free first bounce"})
             continue
         b = bounce_coefficient(t, z_all[a])
-        ref = np.asarray(ctx.ref_positions_m, np.float64)[a, :, 2]
-        rb = bounce_coefficient(np.arange(ref.size) / ctx.fps, ref)
+        rb = ctx.reference_shared(f"bounce:{a}", lambda: _reference_bounce(ctx, a))
         actors.append({"actor": ctx.actor_names[a], "e": b.e, "v_before_m_s": b.v_before, "v_after_m_s": b.v_after,
                        "contact_time_s": b.t_contact_s, "frames_before": b.frames_before,
                        "frames_after": b.frames_after, "reason": b.reason, "reference": rb.e,

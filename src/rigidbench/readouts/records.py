@@ -24,7 +24,7 @@ import numpy as np
 
 from rigidbench.atomic import write_text
 from rigidbench.errors import UserError
-from rigidbench.folders import READOUTS_SUFFIX, RunFolder
+from rigidbench.folders import READOUTS_SUFFIX, RunFolder, sample_item, split_sample_item
 from rigidbench.jsonio import DamagedJSON, load_json, read_json
 from rigidbench.readouts import compute_readouts, context_from_sample
 from rigidbench.readouts.flags import FLAGS, THRESHOLDS
@@ -110,7 +110,7 @@ def _record_summary(record: dict, out_dir: Path | None) -> dict | None:
     if isinstance(record.get("readouts"), dict):
         return record["readouts"]
     if out_dir is not None:  # a record reused from a run before readouts: read its file if there is one
-        doc = read_example_readouts(RunFolder(out_dir).readouts(record["id"]))
+        doc = read_example_readouts(RunFolder(out_dir).readouts(sample_item(record["id"], record.get("sample") or 0)))
         if doc is not None:
             return summary(doc["readouts"])
     return None
@@ -198,18 +198,20 @@ def load_run_readouts(run_dir: str | Path) -> tuple[str, dict, list[dict]]:
     """(model, readouts block, per-example readout files) of a run folder; the block is recomputed from the
     per-example files when results.json has none (a run scored before readouts existed). The block's
     ``unreadable`` gives each scored example whose readouts file is missing or damaged, and why: it is left
-    out of the per-example files (a warning names each damaged file)."""
+    out of the per-example files (a warning names each damaged file). With several samples per example there is
+    one file per sample, its ``sample`` index set."""
     folder = RunFolder(run_dir)
     results = _run_results(folder)
     failed = results.get("failed") if isinstance(results.get("failed"), dict) else {}
-    scored = {p.stem for p in folder.records()} - set(failed)  # examples/<id>.json of the examples scored
+    # examples/<id>.json (and each sample's <id>.s<k>.json) of the examples scored; every sample is one generation
+    scored = {p.stem for p in folder.records() if split_sample_item(p.stem)[0] not in failed}
     with_file = {p.name[:-len(READOUTS_SUFFIX)] for p in folder.examples_dir.glob(f"*{READOUTS_SUFFIX}")}
     examples, unreadable = [], {}
     for sample_id in sorted(scored | with_file):
         path = folder.readouts(sample_id)
         doc = read_example_readouts(path)
         if doc is not None:
-            examples.append(doc)
+            examples.append({**doc, "sample": doc.get("sample", split_sample_item(sample_id)[1])})
         else:
             unreadable[sample_id] = f"{path.relative_to(folder.path)} " + ("damaged" if path.exists() or
                                                                           path.is_symlink() else "missing")

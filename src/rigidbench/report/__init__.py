@@ -9,6 +9,12 @@ Writes into the output directory::
     tables/<name>.csv               model_metrics, by_task, by_partition, paired_changes, poi_matrix,
                                     correlation (long form, unrounded, unscaled)
     figures/<name>.png, .pdf        ssim_vs_ate3d, ate3d_by_task, metric_intervals, poi_heatmaps
+    with several samples per example (report/samples.py): "mean ± seed std" in the model table,
+                                    tables/best_of_k.md/.tex and power.md/.tex, tables/samples.csv and
+                                    power.csv
+    with runs scored against a physical envelope (`evaluate --envelope ENV`): tables/envelope.md/.tex,
+                                    envelope_widths.md/.tex, envelope.csv, envelope_widths.csv and
+                                    figures/envelope_<metric>.png/.pdf (ATE-3D unless envelope_metric says)
     with fine-tuned checkpoint runs (see report/checkpoints.py): tables/checkpoint_sweep.md/.tex/.csv,
                                     tables/checkpoint_paired.md/.tex (with a base run), for the selected
                                     checkpoints tables/checkpoint_selected_paired, _tasks, _partitions
@@ -23,7 +29,8 @@ by_partition.csv, whose `source` column tells them apart) also show the paper's 
 (configs/paper_numbers.yaml), marked "reported in the paper, not re-scored here"; otherwise one line under
 "Model comparison" and in report.md says why they are not shown (report/paper.py).
 
-matplotlib is imported only when figures are drawn.
+A report whose runs all have one sample per example and no envelope is exactly what it was before samples
+and envelopes existed, file for file. matplotlib is imported only when figures are drawn.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from rigidbench.report.html import render_page
 from rigidbench.report.load import ReportError, ScoreTable, load_runs
 from rigidbench.report.paper import comparison_problem, load_paper_numbers
 from rigidbench.report.readouts import readout_section
+from rigidbench.report.samples import check_metric, read_samples
 from rigidbench.report.tables import build_tables, to_markdown, write_csvs, write_tables
 
 log = logging.getLogger(__name__)
@@ -49,14 +57,16 @@ log = logging.getLogger(__name__)
 __all__ = ["ReportError", "ReportNotes", "ScoreTable", "build_report", "load_runs"]
 
 # Which CSV files the HTML offers beside each table.
-_CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv"), "by_task": ("by_task.csv",),
+_CSV_FOR_TABLE = {"model_metrics": ("model_metrics.csv", "correlation.csv", "samples.csv"), "by_task": ("by_task.csv",),
                   "all_by_task": ("by_task.csv",), "by_partition": ("by_partition.csv",),
                   "all_by_partition": ("by_partition.csv",), "paired_changes": ("paired_changes.csv",),
                   "poi_ate3d": ("poi_matrix.csv",), "poi_ssim": ("poi_matrix.csv",),
                   "checkpoint_sweep": ("checkpoint_sweep.csv",), "checkpoint_paired": ("checkpoint_sweep.csv",),
                   "checkpoint_selected_paired": ("checkpoint_sweep.csv",),
                   "checkpoint_selected_tasks": ("by_task.csv",),
-                  "checkpoint_selected_partitions": ("by_partition.csv",)}
+                  "checkpoint_selected_partitions": ("by_partition.csv",),
+                  "best_of_k": ("samples.csv",), "power": ("power.csv",), "envelope": ("envelope.csv",),
+                  "envelope_widths": ("envelope_widths.csv",)}
 
 
 @dataclass(frozen=True)
@@ -153,25 +163,31 @@ def probe_link(probe_report, out_dir: Path) -> tuple[str, str] | None:
 
 def build_report(run_dirs, out_dir, resamples: int = 20000, seed: int = 0, baseline: str | None = None,
                  examples: int = 3, clips: bool = True, outlines: str = "reference",
-                 probe_report: Path | None = None) -> Path:
+                 probe_report: Path | None = None, envelope_metric: str = "ate3d",
+                 power_differences: dict[str, float] | None = None) -> Path:
     """Read run directories, write tables, figures, example filmstrips and report.html into out_dir.
 
     examples: how many examples get filmstrips (0: none); clips: also write their looping videos; outlines:
     what the prediction rows outline, "reference" (where the objects should be) or "perceived" (the run's
     perception cache). Runs of fine-tuned checkpoints add a checkpoint section (report/checkpoints.py);
     probe_report: the HTML `rigidbench probe report` wrote (or its directory), linked from the header.
-    Returns the report.html path."""
+    envelope_metric: the measurement of the envelope figure; power_differences: metric -> the difference the
+    power table's "examples needed" aim at (default 10% of the baseline's mean). Returns the report.html path."""
     out_dir = Path(out_dir)
     table = load_runs(run_dirs)
     log.info("loaded %d runs over %d shared examples", len(table.models), len(table.example_ids))
-    data = analyse(table, resamples=resamples, seed=seed, baseline=baseline)
+    check_metric(envelope_metric, table.metrics, "--envelope-metric")
+    for metric in power_differences or {}:
+        check_metric(metric, table.metrics, "--power-difference")
+    data = analyse(table, resamples=resamples, seed=seed, baseline=baseline, samples=read_samples(table),
+                   power_differences=power_differences, envelope_metric=envelope_metric)
     tables_dir, figures_dir = out_dir / "tables", out_dir / "figures"
     tables_dir.mkdir(parents=True, exist_ok=True)
     figures_dir.mkdir(parents=True, exist_ok=True)
     paper = load_paper_numbers()
     paper_note = comparison_problem(table, paper) or ""  # the paper's rows only beside comparable runs
     reported = None if paper_note else paper
-    tables = build_tables(data, reported)
+    tables = build_tables(data, reported, power_differences)
     sweep = find_checkpoints(data)
     if sweep is not None:
         tables += checkpoint_tables(data, sweep)

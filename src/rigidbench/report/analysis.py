@@ -5,6 +5,10 @@ probability of improvement (ties count one half) compare each model with a basel
 examples; the SSIM / ATE-3D correlation resamples models. All intervals come from
 `rigidbench.stats` with the same resample count and seed, so each one equals what calling
 `bootstrap_ci` on that model's (or pair's) per-example scores gives.
+
+With several samples per example every per-example score is that example's sample mean (report/load.py), so the intervals, paired changes and probabilities of improvement all resample examples, each keeping
+its samples; the seed std, best of K and power table are computed beside them, and the envelope's share
+inside and mean excess where a run was scored against a physical envelope.
 """
 
 from __future__ import annotations
@@ -16,6 +20,15 @@ import numpy as np
 
 from rigidbench.metrics import METRICS
 from rigidbench.report.load import ReportError, ScoreTable
+from rigidbench.report.samples import (
+    EnvelopeStats,
+    PowerComparison,
+    SampleScores,
+    SampleStats,
+    envelope_stats,
+    power_comparisons,
+    sample_stats,
+)
 from rigidbench.stats import (
     PairwiseMatrix,
     bootstrap_ci,
@@ -61,6 +74,10 @@ class ReportData:
     ranked: np.ndarray            # (M,) bool: takes part in best / second-best marks
     resamples: int
     seed: int
+    samples: SampleStats | None = None        # some run has several samples per example
+    power: tuple[PowerComparison, ...] = ()   # with several samples: the power table's comparisons
+    envelope: EnvelopeStats | None = None     # some run was scored against a physical envelope
+    envelope_metric: str = "ate3d"            # the measurement of the envelope figure
 
 
 def higher_is_better(metrics: tuple[str, ...]) -> np.ndarray:
@@ -172,9 +189,14 @@ def correlation_ssim_ate3d(overall: Intervals, metrics: tuple[str, ...], resampl
     return result
 
 
-def analyse(table: ScoreTable, resamples: int = 20000, seed: int = 0, baseline: str | None = None) -> ReportData:
-    """Compute every interval, paired comparison and correlation the report shows."""
-    scores = table.scores
+def analyse(table: ScoreTable, resamples: int = 20000, seed: int = 0, baseline: str | None = None,
+            samples: SampleScores | None = None, power_differences: dict[str, float] | None = None,
+            envelope_metric: str = "ate3d") -> ReportData:
+    """Compute every interval, paired comparison and correlation the report shows; `samples` (report.samples.
+    read_samples) adds the statistics over several samples per example and the envelope's, power_differences
+    (metric -> difference) the differences the power table's "examples needed" aim at."""
+    several = samples is not None and samples.several
+    scores = table.scores  # each example's sample mean (report.load)
     hib = higher_is_better(table.metrics)
     tasks = ordered_groups(table.tasks, TASK_ORDER)
     partitions = ordered_groups(table.partitions, tuple(PARTITION_LABELS))
@@ -188,6 +210,13 @@ def analyse(table: ScoreTable, resamples: int = 20000, seed: int = 0, baseline: 
     ranked = np.array([name not in UNRANKED_NAMES for name in table.models])
     if not ranked.any():
         ranked[:] = True
+    extra = {}
+    if several:
+        extra["samples"] = sample_stats(samples, hib, resamples, seed)
+        extra["power"] = power_comparisons(table, samples.values, base, ranked, overall.mean[base],
+                                           power_differences)
+    if samples is not None:
+        extra["envelope"] = envelope_stats(table, samples.envelopes, tasks, partitions)
     log.info("analysed %d runs x %d examples with %d bootstrap resamples", len(table.models),
              len(table.example_ids), resamples)
     return ReportData(
@@ -197,4 +226,4 @@ def analyse(table: ScoreTable, resamples: int = 20000, seed: int = 0, baseline: 
         by_partition=group_intervals(scores, table.partitions, partitions, resamples, seed),
         baseline=base, paired_diff=diff, paired_poi=poi, poi_matrices=matrices,
         correlation=correlation_ssim_ate3d(overall, table.metrics, resamples, seed),
-        ranked=ranked, resamples=int(resamples), seed=int(seed))
+        ranked=ranked, resamples=int(resamples), seed=int(seed), envelope_metric=envelope_metric, **extra)

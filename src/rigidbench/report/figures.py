@@ -6,7 +6,10 @@
 - metric_intervals: mean and 95% interval of every model on all ten measurements;
 - poi_heatmaps: probability that the row model beats the column model on matched examples, one
   panel per measurement, rows and columns ordered by model mean, best first; bold entries have an
-  interval excluding 0.5.
+  interval excluding 0.5;
+- envelope_<metric>: where a run was scored against a physical envelope, each example's envelope (the
+  twins' 5th to 95th percentile and median) with every model's samples and sample mean on it, for one
+  measurement (`build_report(envelope_metric=...)`, ATE-3D by default).
 """
 
 from __future__ import annotations
@@ -266,6 +269,94 @@ def poi_heatmaps(data: ReportData, out_dir: Path) -> FigureFile | None:
     return save_figure(fig, out_dir, "poi_heatmaps", "Matched probability of improvement", caption)
 
 
+def envelope_order(data: ReportData, k: int, q05: np.ndarray, median: np.ndarray, q95: np.ndarray) -> np.ndarray:
+    """Indices of the examples with an envelope on metric k, grouped by task (report order) and sorted by the
+    envelope's median within each task."""
+    t = data.table
+    ok = np.flatnonzero(np.isfinite(q05) & np.isfinite(q95))
+    rank = {task: i for i, task in enumerate(data.tasks)}
+    return np.array(sorted(ok, key=lambda j: (rank.get(t.tasks[j], len(rank)), median[j], t.example_ids[j])),
+                    dtype=np.int64)
+
+
+def envelope_band(data: ReportData, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q05, median, q95), each (N,), of metric k per example: from the first run whose envelope has it."""
+    env = data.envelope
+    out = [np.full(len(data.table.example_ids), np.nan) for _ in range(3)]
+    for m in range(len(data.table.models)):
+        fill = ~np.isfinite(out[0]) & np.isfinite(env.q05[m, :, k]) & np.isfinite(env.q95[m, :, k])
+        for arr, source in zip(out, (env.q05, env.median, env.q95)):
+            arr[fill] = source[m, fill, k]
+    return out[0], out[1], out[2]
+
+
+def envelope_spread(data: ReportData, out_dir: Path) -> FigureFile | None:
+    """One measurement per example: the envelope's 5th-95th percentile band and median, with each model's samples
+    (small dots) and their mean (large marker) beside it; None without an envelope on that measurement."""
+    env, t, metric = data.envelope, data.table, data.envelope_metric
+    if env is None or metric not in env.metrics:
+        return None
+    k, scale = t.metric_index(metric), display_scale(metric)
+    q05, median, q95 = (a * scale for a in envelope_band(data, k))
+    order = envelope_order(data, k, q05, median, q95)
+    if order.size == 0:
+        return None
+    n_models, n = len(t.models), len(order)
+    x = np.arange(n)
+    colors = model_colors(n_models)
+    fig = new_figure(min(16.0, max(7.0, 2.5 + 0.14 * n * max(1.0, n_models / 3))), 4.6)
+    ax = fig.add_subplot()
+    ax.bar(x, q95[order] - q05[order], bottom=q05[order], width=0.8, color="0.85", edgecolor="none",
+           label="envelope: twins' 5th-95th percentile")
+    ax.scatter(x, median[order], marker="_", s=90, color="0.25", linewidths=1.5, label="envelope median", zorder=3)
+    samples = data.samples.values[..., k] if data.samples is not None else t.scores[:, :, None, k]
+    width = 0.7 / max(n_models, 1)
+    shown = [q05[order], q95[order]]
+    for m, model in enumerate(t.models):
+        dx = (m - (n_models - 1) / 2) * width
+        per = samples[m][order] * scale  # (n, S)
+        rows, cols = np.nonzero(np.isfinite(per))
+        if per.shape[1] > 1 and rows.size:
+            ax.scatter(x[rows] + dx, per[rows, cols], s=9, color=colors[m], alpha=0.55, linewidths=0, zorder=4)
+        mean = t.scores[m, order, k] * scale
+        ok = np.isfinite(mean)
+        ax.scatter(x[ok] + dx, mean[ok], s=30, color=colors[m], edgecolors="black", linewidths=0.5, zorder=5,
+                   label=model)
+        shown += [per[np.isfinite(per)], mean[ok]]
+    values = np.concatenate([v.ravel() for v in shown])
+    values = values[np.isfinite(values)]
+    if values.size and values.min() > 0 and values.max() / values.min() > 100:
+        ax.set_yscale("log")
+    tasks = [t.tasks[j] for j in order]
+    starts = [i for i in range(n) if i == 0 or tasks[i] != tasks[i - 1]]
+    for i in starts[1:]:
+        ax.axvline(i - 0.5, color="0.6", lw=0.8)
+    for i, end in zip(starts, starts[1:] + [n]):
+        ax.text((i + end - 1) / 2, 1.01, task_label(tasks[i]), transform=ax.get_xaxis_transform(), ha="center",
+                va="bottom", fontsize=8)
+    if n <= 40:
+        ax.set_xticks(x, [t.example_ids[j] for j in order], rotation=90, fontsize=6)
+    else:
+        ax.set_xticks([])
+    ax.set_xlim(-0.6, n - 0.4)
+    ax.set_xlabel("examples, by task, sorted by the envelope's median")
+    name = metric_label(metric)
+    ax.set_ylabel(f"{name} {'↑' if METRICS[metric].higher_is_better else '↓'}")
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    several = data.samples is not None
+    caption = (f"{METRICS[metric].display_name} on each example against the physical envelope: grey bars span the "
+               "5th to 95th percentile of the physical twins (the reference re-simulated with its initial state and "
+               "materials perturbed within what one frame cannot resolve), the dark tick is their median. "
+               + ("Small dots are each model's samples, large markers their mean, the value the envelope columns "
+                  "compare. " if several else "Markers are each model's score on the example. ")
+               + "A mean inside the grey bar, or beyond it on the better side, is as close to the reference as "
+               "physics allows; choose the measurement with --envelope-metric." + (f" {METRICS[metric].display_name} is multiplied by {scale:g}."
+                                            if scale != 1.0 else ""))
+    return save_figure(fig, out_dir, f"envelope_{metric}", f"{METRICS[metric].display_name} against the physical "
+                       "envelope, example by example", caption)
+
+
 def build_figures(data: ReportData, out_dir: Path) -> list[FigureFile]:
     """Write every figure as PNG and PDF into out_dir. Returns them in display order."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -273,5 +364,8 @@ def build_figures(data: ReportData, out_dir: Path) -> list[FigureFile]:
     heatmaps = poi_heatmaps(data, out_dir)
     if heatmaps is not None:
         figures.append(heatmaps)
+    spread = envelope_spread(data, out_dir)
+    if spread is not None:
+        figures.append(spread)
     log.info("wrote %d figures to %s", len(figures), out_dir)
     return figures

@@ -3,7 +3,9 @@
 The header is short: what was compared, whether it is official (the shared reason said once), and
 the measurements that were not computed folded into one collapsible note. Then the model table,
 the example filmstrips, the task and partition breakdowns (every measurement in a collapsible
-table), the paired comparisons and probability-of-improvement matrices, the fine-tuned checkpoints
+table), the paired comparisons and probability-of-improvement matrices, where a run was scored against a
+physical envelope the share inside it and its figure, with several samples per example the best-of-K and power
+tables, the fine-tuned checkpoints
 (metric-versus-step curves, paired changes against base Wan and the selected checkpoints' tables, only
 when some runs are checkpoints), and the runs. A probe report given to `build_report` is linked in the header.
 
@@ -19,7 +21,7 @@ from pathlib import Path
 from rigidbench.report.analysis import ReportData, partition_label, task_label
 from rigidbench.report.examples import ExampleStrips, Filmstrips
 from rigidbench.report.figures import FigureFile
-from rigidbench.report.tables import Table, to_html
+from rigidbench.report.tables import Table, samples_text, to_html
 
 CSS = """
 body { font-family: -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; margin: 24px auto; max-width: 1240px;
@@ -78,6 +80,7 @@ details.clips summary { cursor: pointer; font-size: 13px; color: #0b57d0; margin
 # (anchor, heading) of each section, in page order; a section without content is left out.
 SECTIONS = (("models", "Model comparison"), ("examples", "Examples"), ("by-task", "By task"),
             ("by-partition", "By evaluation partition"), ("paired", "Paired comparisons"),
+            ("envelope", "Against the physical envelope"), ("samples", "Several samples per example"),
             ("checkpoints", "Fine-tuned checkpoints"), ("readouts", "Physics readouts"),
             ("uncertainty", "Uncertainty across all measurements"), ("runs", "Runs"))
 
@@ -99,6 +102,7 @@ def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> s
     with_reasons = any(extra_reasons.get(run.name) for run in data.table.runs)
     head = ["Model", "Run directory", "Perception", "Protocol", "Official", "Examples", "Coverage of the span",
             "Failed", "Skipped measurements"]
+    head += ["Samples per example"] if data.samples is not None else []
     head += ["Not official because (beyond the reason above)"] if with_reasons else []
     rows = ['<table class="runs"><thead><tr>' + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr></thead><tbody>"]
     for run in data.table.runs:
@@ -111,6 +115,8 @@ def runs_table(data: ReportData, extra_reasons: dict[str, tuple[str, ...]]) -> s
                  f"<td>{_e(backend)}</td>", f"<td>{_e(run.protocol or 'unrecorded')}</td>",
                  f"<td>{'yes' if run.official else 'no'}</td>", f"<td>{total}</td>",
                  f"<td>{_e(run.coverage_text)}</td>", f"<td>{failed}</td>", f"<td>{skipped}</td>"]
+        if data.samples is not None:
+            cells.append(f"<td>{_e(samples_text(*data.samples.samples[data.table.runs.index(run)]))}</td>")
         if with_reasons:
             cells.append(f"<td>{_e('; '.join(extra_reasons.get(run.name, ()))) or '—'}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
@@ -129,6 +135,9 @@ def header(data: ReportData, notes, probe: tuple[str, str] | None = None) -> lis
             f"protocol {' / '.join(sorted({run.protocol or 'unrecorded' for run in t.runs}))}",
             f"reference set {' / '.join(sorted({run.dataset_text for run in t.runs}))}",
             f"95% percentile bootstrap intervals ({data.resamples:,} resamples over examples, seed {data.seed})"]
+    if data.samples is not None:
+        most = int(data.samples.samples[:, 1].max())
+        meta.append(f"up to {most} samples per example: mean ± seed std")
     if len(t.models) > 1:
         meta.append(f"paired comparisons with <b>{_e(t.models[data.baseline])}</b>")
     parts = ["<h1>RigidBench report</h1>",
@@ -243,6 +252,9 @@ def render_page(data: ReportData, notes, tables: list[Table], table_files: dict[
         paired += ['<details class="more"><summary>Every measurement as a heatmap</summary>']
         paired += figure("poi_heatmaps", "") + ["</details>"]
     body["paired"] = paired
+    body["envelope"] = table("envelope", "") + table("envelope_widths") + next(
+        (figure(key) for key in fig if key.startswith("envelope_")), [])
+    body["samples"] = table("best_of_k") + table("power")
     if checkpoints is not None:
         n_runs, n_ckpt = len(checkpoints.runs), len(checkpoints.checkpoints)
         intro = (f"{n_ckpt} evaluated checkpoint{'s' if n_ckpt != 1 else ''}"

@@ -3,9 +3,10 @@
 A run directory holds ``results.json`` (aggregates, official flag, skipped measurements),
 ``run.json`` (model, perception backend, settings, the predictions and reference directories) and
 ``examples/<id>.json`` (the ten scalars of one example, null where non-finite, with its task and
-partition). `load_runs` aligns every run on
-the example ids that all runs share and returns scores (models, examples, metrics) with NaN for
-a non-finite or skipped measurement.
+partition; with several samples per example, ``examples/<id>.s<k>.json`` too, one per sample). `load_runs`
+aligns every run on the example ids that all runs share and returns scores (models, examples, metrics) with
+NaN for a non-finite or skipped measurement: each example's mean over its samples (its value with one
+sample), as results.json's numbers are; the samples themselves are in ``ScoreTable.samples``.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from rigidbench.errors import ReportError
-from rigidbench.folders import RunFolder
+from rigidbench.evaluation.aggregation import example_means, sample_index
+from rigidbench.folders import RunFolder, split_sample_item
 from rigidbench.groundtruth.bundle import unverified_reason
 from rigidbench.jsonio import DamagedJSON, load_json
 from rigidbench.metrics import METRICS
@@ -49,6 +51,7 @@ class RunInfo:
     unreadable: dict = field(default_factory=dict)  # example id -> why its record is left out (damaged)
     protocol: str = ""  # results.json "protocol" name (evaluation.protocol), "" when the run predates it
     dataset: dict = field(default_factory=dict)  # results.json "dataset": the reference set (bundle.set_identity)
+    envelope: dict | None = None  # results.json "envelope" (`evaluate --envelope ENV`), None when it has none
 
     @property
     def dataset_text(self) -> str:
@@ -75,7 +78,11 @@ class RunInfo:
 
 @dataclass(frozen=True)
 class ScoreTable:
-    """scores: (M, N, K) float64, NaN where non-finite or skipped; tasks, partitions: (N,) str."""
+    """scores: (M, N, K) float64 (models, examples, metrics), each example's mean over its samples' finite
+    values, NaN where none is finite or the measurement was skipped; tasks, partitions: (N,) str. ``samples``:
+    (M, N, K, S) float64, sample s of the example in column s (S: the largest sample index + 1 of any run), NaN
+    where non-finite or the example has no such sample; ``n_samples``: (M, N) int, the samples scored per example
+    (1 for a run of one sample per example)."""
 
     runs: tuple[RunInfo, ...]
     example_ids: tuple[str, ...]
@@ -85,6 +92,8 @@ class ScoreTable:
     scores: np.ndarray
     skipped: np.ndarray  # (M, K) bool: the run did not compute this measurement at all
     notes: tuple[str, ...] = field(default=())
+    samples: np.ndarray | None = None  # (M, N, K, S): see above; None only for a table built by hand
+    n_samples: np.ndarray | None = None  # (M, N) int
 
     @property
     def models(self) -> tuple[str, ...]:
@@ -117,7 +126,10 @@ def _score(value) -> float:
 
 
 def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
-    """Read one run directory. Returns its RunInfo and example id -> example record."""
+    """Read one run directory. Returns its RunInfo and example id -> example record: with one sample, the
+    record; with several, the first sample's record with ``metrics`` the mean over the samples
+    (``evaluation.aggregation.example_means``); each has ``sample_records``, its samples' records by sample
+    index. An example with a sample record that cannot be read is left out (``RunInfo.unreadable``)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         what = "is a file, not a run directory" if run_dir.exists() else "run directory does not exist"
@@ -134,8 +146,9 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
     if not isinstance(failed, dict):
         raise ReportError(f"{results_path}: its 'failed' is not a JSON object; {rewrite_hint(run_dir, results_path)}")
     records, unreadable = {}, {}
-    for path in folder.records():  # <id>.json, not <id>.x.json
-        if path.stem in failed:
+    sample_records: dict[str, list[dict]] = {}
+    for path in folder.records():  # <id>.json and <id>.s<k>.json, not <id>.x.json
+        if split_sample_item(path.stem)[0] in failed:
             continue  # a stale record from an earlier run of an example that failed this time
         try:
             record = load_json(path, expect=dict)
@@ -152,11 +165,15 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
         sample_id = str(record.get("id", path.stem))
         if sample_id in failed:
             continue
-        records[sample_id] = record
+        sample_records.setdefault(sample_id, []).append(record)
+    left_out = {split_sample_item(stem)[0] for stem in unreadable}  # left out whole: a sample cannot be read
+    for example in example_means([r for i, rs in sample_records.items() if i not in left_out for r in rs],
+                                 tuple(METRICS)):
+        records[example["id"]] = {**example, "sample_records": sorted(sample_records[example["id"]], key=sample_index)}
     coverage = results.get("coverage")
     scored = coverage.get("per_example") if isinstance(coverage, dict) else None
     for sample_id in sorted(scored) if isinstance(scored, dict) else ():  # scored (results.json), record gone
-        if sample_id not in records and sample_id not in unreadable and sample_id not in failed:
+        if sample_id not in records and sample_id not in left_out and sample_id not in failed:
             unreadable[sample_id] = f"{folder.record(sample_id).relative_to(run_dir)}: missing"
     if not records:
         damaged = f" ({len(unreadable)} example record(s) damaged: {'; '.join(unreadable.values())})" \
@@ -169,6 +186,14 @@ def read_run(run_dir: str | Path) -> tuple[RunInfo, dict[str, dict]]:
         raise ReportError(f"{results_path} or {folder.run}: a field has another type than `rigidbench evaluate` "
                           f"writes ({type(exc).__name__}: {exc}); {rewrite_hint(run_dir, results_path)}") from None
     return info, records
+
+
+def _envelope(block) -> dict | None:
+    """results.json's "envelope" block, checked to be a JSON object whose "per_example" is one (TypeError if not)."""
+    if block is not None and not (isinstance(block, dict) and isinstance(block.get("per_example", {}), dict)):
+        raise TypeError("its 'envelope' is not the object `evaluate --envelope ENV` writes (with a 'per_example' "
+                        "object)")
+    return block
 
 
 def _run_info(run_dir: Path, results: dict, run: dict, failed: dict, records: dict, unreadable: dict) -> RunInfo:
@@ -196,6 +221,7 @@ def _run_info(run_dir: Path, results: dict, run: dict, failed: dict, records: di
         unreadable=unreadable,
         protocol=str((results.get("protocol") or {}).get("name") or ""),
         dataset=dataset,
+        envelope=_envelope(results.get("envelope")),
     )
 
 
@@ -264,4 +290,22 @@ def load_runs(run_dirs) -> ScoreTable:
             # Skipped = not computed on any shared example (a missing network), not merely non-finite.
             skipped[m, k] = bool(np.isnan(scores[m, :, k]).all()) and (
                 name in info.skipped_metrics or all(name in records[i].get("skipped", {}) for i in shared))
-    return ScoreTable(tuple(infos), tuple(shared), tasks, partitions, metric_names, scores, skipped, tuple(notes))
+    samples, n_samples = _sample_array(loaded, shared, metric_names)
+    return ScoreTable(tuple(infos), tuple(shared), tasks, partitions, metric_names, scores, skipped, tuple(notes),
+                      samples, n_samples)
+
+
+def _sample_array(loaded: list[tuple[RunInfo, dict[str, dict]]], shared: list[str], metric_names: tuple[str, ...]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(samples (M, N, K, S) float64, n_samples (M, N) int) of the runs on the ``shared`` examples: sample s of an
+    example in column s (S: the largest sample index + 1), NaN where non-finite or absent (``ScoreTable``)."""
+    width = max((sample_index(r) + 1 for _, records in loaded for i in shared for r in records[i]["sample_records"]),
+                default=1)
+    samples = np.full((len(loaded), len(shared), len(metric_names), width), np.nan)
+    n_samples = np.zeros((len(loaded), len(shared)), dtype=np.int64)
+    for m, (_, records) in enumerate(loaded):
+        for j, sample_id in enumerate(shared):
+            for r in records[sample_id]["sample_records"]:
+                samples[m, j, :, sample_index(r)] = [_score(r["metrics"].get(name)) for name in metric_names]
+            n_samples[m, j] = len(records[sample_id]["sample_records"])
+    return samples, n_samples

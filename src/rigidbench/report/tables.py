@@ -17,14 +17,34 @@ from __future__ import annotations
 import csv
 import html
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from rigidbench.metrics import GROUPS, METRICS
-from rigidbench.report.analysis import ReportData, best_first_order, partition_label, rank_marks, task_label
+from rigidbench.report.analysis import (
+    TASK_ORDER,
+    ReportData,
+    best_first_order,
+    partition_label,
+    rank_marks,
+    task_label,
+)
 from rigidbench.report.paper import PaperNumbers
+from rigidbench.report.samples import (
+    DEFAULT_RELATIVE_DIFFERENCE,
+    DOUBLED_ASSUMPTION,
+    PAIRED_ASSUMPTION,
+    POWER_ALPHA,
+    POWER_EXAMPLES,
+    POWER_SAMPLES,
+    POWER_TARGET,
+    PowerComparison,
+    envelope_metric_note,
+    finite,
+)
+from rigidbench.stats.power import PowerRow
 
 # Display-only scale factors (the paper prints BGDrift x 10^3); CSV files stay unscaled.
 # The paper's two column groups of the model table: six object measurements, four image measurements.
@@ -212,15 +232,16 @@ def model_table(data: ReportData, reported: PaperNumbers | None = None) -> Table
         scale = display_scale(metric)
         decimals = column_decimals(data.overall.mean[:, k], metric)
         marks = marks_for(data.overall.mean[:, k], metric, data.ranked & ~t.skipped[:, k], decimals)
-        columns.append([value_cell(data.overall.mean[m, k], data.overall.lo[m, k], data.overall.hi[m, k],
-                                   int(data.overall.n_finite[m, k]), n, decimals, marks[m], bool(t.skipped[m, k]),
-                                   scale=scale) for m in range(len(t.models))])
+        columns.append([with_seed_std(value_cell(data.overall.mean[m, k], data.overall.lo[m, k],
+                                                 data.overall.hi[m, k], int(data.overall.n_finite[m, k]), n, decimals,
+                                                 marks[m], bool(t.skipped[m, k]), scale=scale),
+                                      data, m, k, decimals) for m in range(len(t.models))])
     rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
     paper_rows, heading, paper_note = reported_rows(reported, "model", [(m, None) for m in t.metrics])
     caption = (f"Means over the {n} evaluation examples, 95% percentile bootstrap interval below "
                f"({data.resamples:,} resamples over examples); non-finite measurements are left out and n= gives "
                f"the finite count where there were some. Arrows give the better direction. {MARKS_NOTE}"
-               + scale_note(t.metrics) + _unranked_note(data) + paper_note)
+               + scale_note(t.metrics) + _unranked_note(data) + samples_note(data) + paper_note)
     return Table("model_metrics", "Model comparison", caption, ("Model",) + tuple(metric_label(m) for m in t.metrics),
                  ("",) + tuple(metric_arrow(m) for m in t.metrics), rows + tuple(paper_rows),
                  groups=metric_groups(t.metrics), row_breaks=(len(rows),) if paper_rows else (),
@@ -385,9 +406,231 @@ def poi_table(data: ReportData, metric: str) -> Table | None:
                  vertical_header=True)
 
 
-def build_tables(data: ReportData, reported: PaperNumbers | None = None) -> list[Table]:
+# ------------------------------------------------------------- several samples, envelope, power
+
+
+def samples_text(fewest: int, most: int) -> str:
+    """Samples per example of one run: '4', or '2-4' where examples differ."""
+    return f"{fewest}" if fewest == most else f"{fewest}-{most}"
+
+
+def with_seed_std(cell: Cell, data: ReportData, m: int, k: int, decimals: int) -> Cell:
+    """`cell` (run m's mean of metric k) as 'mean ± seed std' when the run has several samples per example."""
+    s = data.samples
+    if s is None or not s.several(m) or cell.text in ("skipped", "n/a") or not math.isfinite(s.seed_std[m, k]):
+        return cell
+    std = s.seed_std[m, k] * display_scale(data.table.metrics[k])
+    return replace(cell, text=f"{cell.text} ± {fmt(std, std_decimals(std, decimals))}")
+
+
+def std_decimals(std: float, decimals: int) -> int:
+    """Decimals for a seed std beside a mean printed at `decimals`: as many, or more so that a std below the mean's
+    last digit still shows one significant digit (at most 6)."""
+    if not (math.isfinite(std) and std > 0):
+        return decimals
+    return max(decimals, min(6, -math.floor(math.log10(std))))
+
+
+def samples_note(data: ReportData) -> str:
+    """The model table's caption sentence on several samples per example ("" when every run has one)."""
+    s = data.samples
+    if s is None:
+        return ""
+    counts = "; ".join(f"{model} {samples_text(*s.samples[m])}" for m, model in enumerate(data.table.models))
+    return (f" Samples per example: {counts}. An example counts once, with the mean of its samples; the "
+            "interval resamples examples, each keeping its samples. ± is the seed std: the standard deviation "
+            "(ddof 1) over sample indices k of the mean over examples of sample k, the mean ± std over runs that "
+            "Physics-IQ reports. The best of K samples is in a table of its own and never here.")
+
+
+def best_of_k_table(data: ReportData) -> Table | None:
+    """Runs with several samples x every metric: the mean over examples of each example's best sample, with its
+    95% interval; None when every run has one sample per example."""
+    s, t = data.samples, data.table
+    if s is None:
+        return None
+    n = len(t.example_ids)
+    shown = [m for m in range(len(t.models)) if s.several(m)]
+    columns = []
+    for k, metric in enumerate(t.metrics):
+        decimals = column_decimals(data.overall.mean[:, k], metric)
+        columns.append([value_cell(s.best_mean[m, k], s.best_lo[m, k], s.best_hi[m, k], int(s.best_n[m, k]), n,
+                                   decimals, skipped=bool(t.skipped[m, k]), scale=display_scale(metric))
+                        for m in shown])
+    rows = tuple((Cell(t.models[m]), Cell(samples_text(*s.samples[m]))) + tuple(col[i] for col in columns)
+                 for i, m in enumerate(shown))
+    caption = ("Best of K, optimistic by construction and not the headline: for each example, its best sample (the "
+               "highest where ↑ is better, the lowest where ↓), averaged over the examples, with its 95% "
+               f"percentile bootstrap interval over examples ({data.resamples:,} resamples). Choosing the best "
+               "sample needs the reference, which a model does not have; the model comparison (each example's "
+               "sample mean) is the score. K: samples per example. Also in samples.csv."
+               + scale_note(t.metrics))
+    return Table("best_of_k", "Best of K samples per example (optimistic; not the headline)", caption,
+                 ("Model", "K") + tuple(metric_label(m) for m in t.metrics),
+                 ("", "") + tuple(metric_arrow(m) for m in t.metrics), rows, n_label_columns=2,
+                 groups=metric_groups(t.metrics))
+
+
+def _envelope_words(data: ReportData) -> str:
+    """The envelope(s) the runs were scored against, in a few words."""
+    env = data.envelope
+    blocks = [b for b in env.blocks if b is not None]
+    twins = sorted({str(b.get("twins", "?")) for b in blocks})
+    geometry = {bool(b.get("geometry_only")) for b in blocks}
+    kind = ("geometry-only twins (no rendering)" if geometry == {True} else "rendered twins" if geometry == {False}
+            else "twins, geometry-only for some runs")
+    return f"{' or '.join(twins)} {kind} per example, from {'; '.join(env.sources) or 'an unrecorded folder'}"
+
+
+def envelope_table(data: ReportData) -> Table | None:
+    """Model x (metric: mean, share inside the envelope, mean excess) for the measurements the envelope covers;
+    None when no run was scored against an envelope."""
+    env, t = data.envelope, data.table
+    if env is None or not env.metrics:
+        return None
+    n = len(t.example_ids)
+    columns = []
+    for metric in env.metrics:
+        k, scale = t.metric_index(metric), display_scale(metric)
+        decimals = column_decimals(data.overall.mean[:, k], metric)
+        excess_decimals = column_decimals(env.excess[:, k], metric)
+        means, inside, excess = [], [], []
+        for m in range(len(t.models)):
+            means.append(with_seed_std(value_cell(data.overall.mean[m, k], data.overall.lo[m, k],
+                                                  data.overall.hi[m, k], int(data.overall.n_finite[m, k]), n,
+                                                  decimals, skipped=bool(t.skipped[m, k]), with_interval=False,
+                                                  scale=scale), data, m, k, decimals))
+            counted = int(env.n[m, k])
+            if not env.has(m) or counted == 0:
+                inside.append(Cell("—"))
+                excess.append(Cell("—"))
+                continue
+            note = f"n={counted}" if counted < n else ""
+            inside.append(Cell(f"{100 * env.inside[m, k]:.0f}%", note=note))
+            excess.append(Cell(fmt(env.excess[m, k] * scale, excess_decimals)))
+        columns += [means, inside, excess]
+    rows = tuple((Cell(model),) + tuple(col[m] for col in columns) for m, model in enumerate(t.models))
+    header = ("Model",) + tuple(f"{metric_label(m)} {part}" for m in env.metrics for part in ("mean", "inside",
+                                                                                               "excess"))
+    different = (f" The runs were scored against different envelopes ({'; '.join(env.sources)}), so their shares "
+                 "are not comparable." if len(env.sources) > 1 else "")
+    caption = (f"Each run against the physical envelope: {_envelope_words(data)}. A twin is the reference "
+               "re-simulated with its initial state and materials perturbed within what one frame cannot resolve "
+               "(configs/envelope.yaml), scored against the reference like a model. Excess: the mean over examples "
+               "of how far the run's value (the mean of its samples) lies beyond the envelope on the worse side, "
+               "max(0, value − q95) where ↓ is better and max(0, q05 − value) where ↑ is. Inside: the share of "
+               "examples with no excess, so a value better than every twin counts as inside. Mean: the "
+               "run's score as in the model comparison. —: the run was not scored against an envelope "
+               "(`rigidbench evaluate --envelope ENV`). By task and partition: envelope.csv." + different
+               + envelope_figure_note(data) + scale_note(env.metrics))
+    arrows = ("",) + tuple(a for m in env.metrics for a in (metric_arrow(m), "up", "down"))
+    return Table("envelope", "Inside the physical envelope", caption, header, arrows, rows)
+
+
+def envelope_figure_note(data: ReportData) -> str:
+    """Why the envelope figure is missing for the chosen measurement ("" when it is drawn)."""
+    return (" " + envelope_metric_note(data.envelope, data.envelope_metric)).rstrip()
+
+
+def envelope_widths(data: ReportData) -> tuple[list[str], dict[str, dict]]:
+    """(tasks in display order, task -> metric -> width) from the first envelope block with widths."""
+    widths = next((b.get("widths") for b in data.envelope.blocks if b is not None and isinstance(b.get("widths"),
+                                                                                                  dict)), None) or {}
+    widths = {str(task): row for task, row in widths.items() if isinstance(row, dict)}
+    order = [g for g in TASK_ORDER if g in widths] + sorted(set(widths) - set(TASK_ORDER))
+    return order, widths
+
+
+def envelope_widths_table(data: ReportData) -> Table | None:
+    """Task x envelope metric: the envelope's median width (q95 − q05) over the task's examples; None without."""
+    env = data.envelope
+    if env is None or not env.metrics:
+        return None
+    tasks, widths = envelope_widths(data)
+    if not tasks:
+        return None
+    cells = {metric: [finite(widths[task].get(metric)) for task in tasks] for metric in env.metrics}
+    decimals = {metric: column_decimals(np.array(values), metric) for metric, values in cells.items()}
+    rows = tuple((Cell(task_label(task)),) + tuple(
+        Cell(fmt(cells[metric][i] * display_scale(metric), decimals[metric])) for metric in env.metrics)
+        for i, task in enumerate(tasks))
+    caption = ("How much room physics leaves, by task: the median over the task's examples of the envelope's width, "
+               "the twins' 95th minus 5th percentile of each measurement against the reference. A wide envelope "
+               "means the outcome is sensitive to what one frame cannot pin down; a model is not asked to be "
+               f"closer than that. Twins: {_envelope_words(data)}. Also in envelope_widths.csv."
+               + scale_note(env.metrics))
+    return Table("envelope_widths", "Envelope width by task", caption,
+                 ("Task",) + tuple(metric_label(m) for m in env.metrics), ("",) * (1 + len(env.metrics)), rows)
+
+
+def comparison_label(cmp: PowerComparison) -> str:
+    """'alpha vs base', or 'base, doubled' for one run's own components."""
+    return f"{cmp.model} vs {cmp.baseline}" if cmp.assumption == PAIRED_ASSUMPTION else f"{cmp.model}, doubled"
+
+
+def power_view(data: ReportData, differences: dict[str, float] | None = None) -> Table | None:
+    """(comparison, metric) x (smallest detectable difference at 100 examples x K, the difference δ, examples
+    needed for δ at each K); None when every run has one sample per example."""
+    if not data.power:
+        return None
+    t = data.table
+    rows, breaks = [], []
+    for cmp in data.power:
+        breaks.append(len(rows))
+        by_metric: dict[str, list[PowerRow]] = {}
+        for row in cmp.rows:
+            by_metric.setdefault(row.measurement, []).append(row)
+        for i, (metric, prs) in enumerate(by_metric.items()):
+            scale = display_scale(metric)
+            values = np.array([r.min_detectable_difference for r in prs] + [prs[0].difference]) * scale
+            decimals = decimals_for(values)
+            cells = [Cell(fmt(r.min_detectable_difference * scale, decimals)) for r in prs]
+            cells.append(Cell(fmt(prs[0].difference * scale, decimals)))
+            cells += [Cell(f"{r.examples_needed:,}", f"({r.samples_needed:,} samples)")
+                      if r.examples_needed is not None else Cell("n/a") for r in prs]
+            rows.append((Cell(comparison_label(cmp) if i == 0 else ""),
+                         Cell(f"{metric_label(metric)}{ARROW_TEXT[metric_arrow(metric)]}")) + tuple(cells))
+    assumptions = {cmp.assumption for cmp in data.power}
+    words = []
+    if PAIRED_ASSUMPTION in assumptions:
+        words.append("A row 'A vs B' measures σ_D² and both σ_w² on the runs A and B (B the baseline).")
+    if DOUBLED_ASSUMPTION in assumptions:
+        words.append("With no second run to pair with, a row 'A, doubled' assumes a second model with A's variances "
+                     "and example effects independent of A's: σ_D² is twice A's between-example variance and each "
+                     "σ_w² is A's. That is pessimistic when two models find the same examples hard, which makes "
+                     "their per-example differences vary less.")
+    given = sorted(differences or {})
+    delta = (f"δ: the difference given with --power-difference for {', '.join(given)}, else "
+             if given else "δ: ") + f"{100 * DEFAULT_RELATIVE_DIFFERENCE:.0f}% of the baseline's mean."
+    caption = (f"How sure a comparison of two models can be: the smallest mean difference that {POWER_EXAMPLES} "
+               f"examples with K samples per example of each model detect with probability {POWER_TARGET:g}, and "
+               f"how many examples a difference δ needs, in a two-sided paired t-test at level {POWER_ALPHA:g} on "
+               "the per-example differences of sample means. At K samples the variance of one example's "
+               "difference is τ²(K) = σ_D² + (σ_w,A² + σ_w,B²) / K, σ_D² the between-example variance of the true "
+               "per-example difference and σ_w² each model's within-example variance, measured on this report's "
+               f"{len(t.example_ids)} examples (rigidbench.stats.power). " + " ".join(words) + " " + delta
+               + " Examples needed is per model, with the samples that makes (examples x K) below. n/a: that K "
+               "needs a within-example variance, which a run with one sample per example does not measure, or "
+               "the difference is zero. Every number is also in power.csv." + scale_note(t.metrics))
+    header = (("Comparison", "Measurement") + tuple(f"detectable at K={k}" for k in POWER_SAMPLES) + ("δ",)
+              + tuple(f"examples at K={k}" for k in POWER_SAMPLES))
+    groups = ((f"Smallest detectable difference, {POWER_EXAMPLES} examples", len(POWER_SAMPLES)), ("", 1),
+              ("Examples needed for δ", len(POWER_SAMPLES)))
+    return Table("power", "Power: examples and samples a comparison needs", caption, header, ("",) * len(header),
+                 tuple(rows), n_label_columns=2, groups=groups, row_breaks=tuple(breaks[1:]))
+
+
+def sample_tables(data: ReportData, differences: dict[str, float] | None = None) -> list[Table]:
+    """The tables of several samples per example and of the physical envelope that apply (none for a report of
+    one sample per example without an envelope)."""
+    return [tb for tb in (envelope_table(data), envelope_widths_table(data), best_of_k_table(data),
+                          power_view(data, differences)) if tb is not None]
+
+
+def build_tables(data: ReportData, reported: PaperNumbers | None = None,
+                 differences: dict[str, float] | None = None) -> list[Table]:
     """Every table of the report, in display order; `reported`: the paper's numbers to show beside the runs
-    (None: the runs are not comparable with them)."""
+    (None: the runs are not comparable with them); differences: the --power-difference values."""
     tables = [model_table(data, reported), breakdown_table(data, "task", reported=reported),
               all_metrics_table(data, "task"), breakdown_table(data, "partition", reported=reported),
               all_metrics_table(data, "partition")]
@@ -395,7 +638,7 @@ def build_tables(data: ReportData, reported: PaperNumbers | None = None) -> list
     if paired is not None:
         tables.append(paired)
     tables += [tb for tb in (poi_table(data, m) for m in headline_metrics(data.table.metrics)) if tb is not None]
-    return tables
+    return tables + sample_tables(data, differences)
 
 
 # ------------------------------------------------------------------------------------ renderers
@@ -436,7 +679,8 @@ def to_markdown(table: Table) -> str:
 _TEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
                 "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
                 "×": r"$\times$", "³": r"$^3$", "−": "$-$", "Δ": r"$\Delta$", "↑": r"$\uparrow$",
-                "↓": r"$\downarrow$", "·": r"$\cdot$", "—": "---"}
+                "↓": r"$\downarrow$", "·": r"$\cdot$", "—": "---", "±": r"$\pm$", "δ": r"$\delta$",
+                "σ": r"$\sigma$", "τ": r"$\tau$", "²": r"$^2$"}
 
 
 def tex_escape(text: str) -> str:
@@ -642,6 +886,57 @@ def write_csvs(data: ReportData, out_dir: Path, reported: PaperNumbers | None = 
                                [["ssim", "-ate3d", c["n_models"], csv_number(c["pearson"]), csv_number(ci_p[0]),
                                  csv_number(ci_p[1]), csv_number(c["spearman"]), csv_number(ci_s[0]),
                                  csv_number(ci_s[1])]]))
+    return paths + write_sample_csvs(data, out_dir)
+
+
+def write_sample_csvs(data: ReportData, out_dir: Path) -> list[Path]:
+    """samples.csv (several samples per example), envelope.csv and envelope_widths.csv (an envelope), power.csv
+    (the power table), each only when it applies. Unscaled, full precision. Returns the paths written."""
+    t, paths = data.table, []
+    s = data.samples
+    if s is not None:
+        rows = [[model, metric, int(s.samples[m, 0]), int(s.samples[m, 1]), csv_number(data.overall.mean[m, k]),
+                 csv_number(data.overall.lo[m, k]), csv_number(data.overall.hi[m, k]), csv_number(s.seed_std[m, k]),
+                 csv_number(s.within_std[m, k]), csv_number(s.best_mean[m, k]), csv_number(s.best_lo[m, k]),
+                 csv_number(s.best_hi[m, k]), int(data.overall.n_finite[m, k])]
+                for m, model in enumerate(t.models) for k, metric in enumerate(t.metrics)]
+        paths.append(write_csv(out_dir / "samples.csv",
+                               ["model", "metric", "samples_min", "samples_max", "mean", "ci_low", "ci_high",
+                                "seed_std", "within_example_std", "best_of_k_mean", "best_of_k_ci_low",
+                                "best_of_k_ci_high", "n_finite"], rows))
+    env = data.envelope
+    if env is not None and env.metrics:
+        rows = []
+        for grouping, names, (inside, excess, n) in (
+                ("overall", ("all",), (env.inside[:, None], env.excess[:, None], env.n[:, None])),
+                ("task", data.tasks, env.by_task), ("partition", data.partitions, env.by_partition)):
+            for g, group in enumerate(names):
+                for metric in env.metrics:
+                    k = t.metric_index(metric)
+                    rows += [[model, str(env.blocks[m].get("source", "")), grouping, group, metric,
+                              csv_number(inside[m, g, k]), csv_number(excess[m, g, k]), int(n[m, g, k])]
+                             for m, model in enumerate(t.models) if env.has(m)]
+        paths.append(write_csv(out_dir / "envelope.csv", ["model", "envelope", "grouping", "group", "metric",
+                                                          "inside", "excess", "n_examples"], rows))
+        tasks, widths = envelope_widths(data)
+        if tasks:
+            paths.append(write_csv(out_dir / "envelope_widths.csv", ["task", "metric", "width"],
+                                   [[task, metric, csv_number(finite(widths[task].get(metric)))]
+                                    for task in tasks for metric in env.metrics]))
+    if data.power:
+        rows = [[cmp.model, cmp.baseline, cmp.assumption, r.measurement, r.samples_per_example, r.n_examples,
+                 csv_number(r.difference_variance), csv_number(r.min_detectable_difference), csv_number(r.difference),
+                 "" if r.examples_needed is None else r.examples_needed,
+                 "" if r.samples_needed is None else r.samples_needed,
+                 csv_number(cmp.components[r.measurement].between), csv_number(cmp.components[r.measurement].within_a),
+                 csv_number(cmp.components[r.measurement].within_b), cmp.components[r.measurement].n_examples,
+                 POWER_ALPHA, POWER_TARGET]
+                for cmp in data.power for r in cmp.rows]
+        paths.append(write_csv(out_dir / "power.csv",
+                               ["model", "baseline", "assumption", "metric", "samples_per_example", "n_examples",
+                                "difference_variance", "min_detectable_difference", "difference", "examples_needed",
+                                "samples_needed", "between_variance", "within_variance_model",
+                                "within_variance_baseline", "measured_examples", "alpha", "power"], rows))
     return paths
 
 

@@ -5,6 +5,12 @@ examples, keeps a ledger entry per example (``out/.stages/evaluate/<id>.json``) 
 inputs and rules, skips those whose key and committed record are unchanged, runs the rest through an
 executor and records failures; ``EvaluateWorker`` scores one example into a staging folder, and
 ``EvaluateStage.finish`` writes results.json and run.json from every selected example's record.
+
+Several samples (generations) per example (``folders.find_samples``: ``<id>.s<k>.mp4`` beside ``<id>.mp4``) make
+one item per (example, sample), each with its own ledger entry, key and record (``examples/<id>.s<k>.json``);
+``--ids`` and ``--limit`` choose examples with all their samples. results.json's numbers are over examples, each
+the mean of its samples, plus a ``samples`` block (seed spread, within-example std, best of K) and the
+``variance`` components; one sample per example gives the numbers it gave before samples existed.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ from __future__ import annotations
 import glob
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,17 +26,20 @@ from typing import Any
 
 import numpy as np
 
-from ..driver import (ItemResult, Key, Progress, RunOptions, Stage, StageReport, StageWorker, ledger_outcomes,
-                      outputs_intact, read_ledger, run_stage)
+from ..driver import (Adopted, ItemResult, Key, Progress, RunOptions, Stage, StageReport, StageWorker,
+                      ledger_outcomes, outputs_intact, read_ledger, run_stage)
 from ..errors import EXAMPLE_ERRORS, EvaluationError
-from ..evaluation.aggregation import EVAL_SIZE, aggregate, coverage_summary, why_not_official
+from ..evaluation.aggregation import (EVAL_SIZE, aggregate, coverage_summary, example_notes, sample_index,
+                                      samples_summary, variance_components, why_not_official)
+from ..evaluation.envelope import Envelope, check_envelope, envelope_block, read_envelope
 from ..evaluation.keys import file_hash, input_key, reference_hash
 from ..evaluation.protocol import Protocol, get_protocol
 from ..evaluation.provenance import run_info
-from ..evaluation.scoring import metric_inputs, score_inputs
+from ..evaluation.reference_side import ReferenceSide
+from ..evaluation.scoring import metric_inputs, score_inputs, skip_reasons
 from ..executors import Resources, Shard
 from ..firstframe import compare_first_frames, mismatch_message
-from ..folders import RunFolder, find_prediction, sample_item, state_path
+from ..folders import RunFolder, check_prediction, sample_files, sample_item, state_path
 from ..groundtruth.bundle import Sample, bundle_dirs, resolve_split_dir, set_identity, unverified_reason
 from ..hashing import digest
 from ..jsonio import read_json, write_json
@@ -37,7 +47,7 @@ from ..metrics import METRICS
 from ..perception.base import Perception, get_backend
 from ..perception.features import FeatureNets, feature_nets_key, load_feature_nets
 from ..readouts.records import aggregate_readouts, example_readouts, read_example_readouts, record_problem
-from ..video import align_video, aligned_length, reference_times, resize_frames
+from ..video import align_video, aligned_length, resize_frames
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +110,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
              run: RunOptions = RunOptions(), nets: FeatureNets | None = None,
              model: str | None = None, perception_options: dict | None = None, device: str | None = None,
              protocol: str | None = None, first_frame_check: bool = True,
-             allow_short: bool = False) -> StageReport:
+             allow_short: bool = False, envelope: str | Path | None = None) -> StageReport:
     """Score every selected example of the reference split ``data_dir`` (a split directory, or a data root
     holding one split); writes out/examples/<id>.json, .npz and .readouts.json, out/results.json and
     out/run.json.
@@ -120,7 +130,10 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
     refuses it; ``allow_short`` scores it on the frames it has instead, marked short in its record and
     results.json (not official). Both rules are part of each example's key: changing one scores the
     examples again. Every record and results.json hold each example's coverage (seconds and fraction of
-    the span scored). Returns the driver's report, its ``facts`` an ``EvaluateFacts``."""
+    the span scored). ``envelope``: a physical envelope folder (``rigidbench envelope``; read and checked to
+    be for this set before any example is scored): results.json gains an "envelope" block
+    (``evaluation.envelope.envelope_block``); it is not part of any example's key, so changing it rewrites
+    results.json only. Returns the driver's report, its ``facts`` an ``EvaluateFacts``."""
     pred_dir, out_dir = Path(pred_dir), Path(out_dir)
     if not pred_dir.is_dir():
         raise EvaluationError(f"{pred_dir}: predictions directory does not exist")
@@ -131,6 +144,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *,
                           rules=rules, perception=perception, perception_options=perception_options or {},
                           device=device, first_frame_check=first_frame_check, allow_short=allow_short,
                           shard=run.selection.shard)
+    if envelope is not None:  # --envelope: read and checked before anything is scored
+        stage.envelope = read_envelope(envelope)
+        check_envelope(stage.envelope, stage.all_ids, set_identity(bundle_dirs(data_dir)))
     return run_stage(stage, run)
 
 
@@ -150,12 +166,14 @@ def read_record(path: Path) -> dict | None:
 
 
 class EvaluateStage(Stage):
-    """The evaluate stage as the driver sees it. Root: the run folder; items: the reference examples of the
-    split, payload ``{}``; key: a ``Key`` whose facts hold what the worker and run.json need (the example's
+    """The evaluate stage as the driver sees it. Root: the run folder; items: one per (example, sample) of the
+    reference examples of the split (``items``; one sample per example: the example ids), payload ``{"example":
+    id, "sample": k}``; key: a ``Key`` whose facts hold what the worker and run.json need (the example's
     ``input_key``, its prediction file and the content hashes); its digest covers the example's input key (prediction video and world state, reference bundle, perception backend and version,
     feature networks, metric list, protocol, score version; ``cache.input_key``, also stored in its record)
     together with the rules ``first_frame_check`` and ``allow_short``; its output: ``examples/<id>.npz``,
-    ``<id>.readouts.json`` and ``<id>.json`` (the record, committed last)."""
+    ``<id>.readouts.json`` and ``<id>.json`` (the record, committed last), named by the sample's item
+    (``<id>.s<k>.json`` for sample k >= 1). ``finish`` aggregates per example (its samples' mean)."""
 
     name = "evaluate"
     worker = "rigidbench.stages.evaluate:EvaluateWorker"
@@ -171,9 +189,16 @@ class EvaluateStage(Stage):
         self.metrics = tuple(METRICS)
         self.nets_key = nets.key if nets is not None else feature_nets_key()
         self.all_ids = [p.name for p in bundle_dirs(self.data_dir)]
+        # filled by items(): item -> payload; sample item -> its video; example -> why its samples cannot be listed;
+        # example -> its items
+        self.payloads: dict[str, dict] = {}
+        self.found: dict[str, Path] = {}
+        self.unlisted: dict[str, str] = {}
+        self.example_items: dict[str, list[str]] = {}
         self.results: dict | None = None
         self.skipped: dict[str, str] = {}
         self.started = time.time()
+        self.envelope: Envelope | None = None  # evaluate --envelope: results.json's "envelope" block
 
     @property
     def root(self) -> Path:
@@ -184,15 +209,45 @@ class EvaluateStage(Stage):
         return str(self.data_dir)
 
     def items(self) -> dict[str, Any]:
-        return {sample_id: {} for sample_id in self.all_ids}
+        """One item per (example, sample): every sample of every reference example under the naming rule
+        (``folders.find_samples``), named ``sample_item(id, k)``, payload ``{"example": id, "sample": k}``, in
+        example then sample order. An example with no prediction, or whose samples clash (``<id>.mp4`` beside
+        ``<id>.s0.mp4``), is the single item ``<id>`` whose key fails with the reason; each sample's file is
+        checked by its own key, so one that is not a regular file fails alone."""
+        out: dict[str, Any] = {}
+        self.found, self.unlisted, self.example_items = {}, {}, {}
+        for example in self.all_ids:
+            try:
+                found = sample_files(self.pred_dir, example)
+            except EXAMPLE_ERRORS as exc:
+                found, self.unlisted[example] = {}, str(exc)
+            for k, path in (found or {0: None}).items():
+                item = sample_item(example, k)
+                out[item] = {"example": example, "sample": k}
+                self.example_items.setdefault(example, []).append(item)
+                if path is not None:
+                    self.found[item] = path
+        if any(len(items) > 1 for items in self.example_items.values()):
+            self.unit = "sample"  # the driver's counts are of samples
+        self.payloads = out
+        return out
+
+    def example_of(self, item_id: str) -> str:
+        """The example of an item (``items``' payloads); ``--ids`` and ``--limit`` choose examples."""
+        return self.payloads.get(item_id, {}).get("example", item_id)
 
     def key(self, item_id: str, payload: dict) -> Key:
-        pred = find_prediction(self.pred_dir, item_id)
+        """The sample's key: its prediction's hash (and its world state's), with the reference example's."""
+        example = payload.get("example", item_id)
+        if example in self.unlisted:
+            raise EvaluationError(self.unlisted[example])
+        pred = self.found.get(item_id)
         if pred is None:
-            raise EvaluationError(f"{item_id}: no prediction {item_id}.mp4 (or .webm/.mov/...) in {self.pred_dir}")
-        state = state_path(pred)
+            raise EvaluationError(f"{example}: no prediction {example}.mp4 (or .webm/.mov/..., or samples "
+                                  f"{example}.s<k>.mp4) in {self.pred_dir}")
+        state = state_path(check_prediction(pred))
         pred_key = file_hash(pred) + (file_hash(state) if state.exists() else "")  # both checked regular
-        ref_key = reference_hash(self.data_dir / item_id)
+        ref_key = reference_hash(self.data_dir / example)
         key = input_key(pred_key, ref_key, f"{self.backend.name}:{self.backend.version}", self.nets_key,
                         self.metrics, f"protocol={self.rules.key()}")
         return Key(digest(key, {"first_frame_check": self.first_frame_check, "allow_short": self.allow_short}),
@@ -210,16 +265,16 @@ class EvaluateStage(Stage):
         scored = ((entry.get("result") or {}).get("record") or {}).get("input_key")
         return record is not None and scored is not None and record.get("input_key") == scored
 
-    def adopt(self, item_id: str, payload: dict, key: Key) -> dict | None:
+    def adopt(self, item_id: str, payload: dict, key: Key) -> Adopted | None:
         """A record from before ledgers scored from these inputs, and accepted by these rules (it may have
         been scored under others: its facts say whether it would be refused now)."""
         record = read_record(self.folder.record(item_id))
         if record is None or record.get("input_key") != key.facts["input_key"]:
             return None
-        if refusal(record, Path(key.facts["prediction"]), self.data_dir / item_id, self.first_frame_check,
-                   self.allow_short) is not None:
+        if refusal(record, Path(key.facts["prediction"]), self.data_dir / payload.get("example", item_id),
+                   self.first_frame_check, self.allow_short) is not None:
             return None
-        return {"record": record, "timings": {}}
+        return Adopted({"record": record, "timings": {}}, "a record scored from these inputs before ledgers")
 
     def job(self) -> dict:
         return {"pred_dir": str(self.pred_dir.resolve()), "data_dir": str(self.data_dir.resolve()),
@@ -238,6 +293,35 @@ class EvaluateStage(Stage):
         ready_backend(self.perception, backend=self.backend)
         self.folder.cache_dir.mkdir(parents=True, exist_ok=True)
 
+    def _outcomes(self, selected: list[str], done: dict[str, dict], failed_items: dict[str, str]
+                  ) -> tuple[list[dict], dict[str, str]]:
+        """Per example, from the ledger's outcomes of its selected samples (``driver.ledger_outcomes``): the score
+        records, sorted by (example, sample), of every complete example (each of its selected samples scored), and
+        example -> why it failed for each example with a failed sample (an example of one sample: its reason as
+        it is; else each failed sample's, "sample k: ..."). An example with a sample not attempted yet (or being
+        scored elsewhere) is in neither."""
+        chosen: dict[str, list[str]] = {}
+        for item in selected:
+            chosen.setdefault(self.example_of(item), []).append(item)
+        records, failed = [], {}
+        for example, items in chosen.items():
+            failures = [(item, failed_items[item]) for item in items if item in failed_items]
+            if failures:
+                if self.example_items.get(example, [example]) == [example]:
+                    failed[example] = failures[0][1]
+                else:
+                    failed[example] = "; ".join(f"sample {self.index_of(item)}: {why}" for item, why in failures)
+            elif all(item in done for item in items):
+                for item in items:
+                    record = read_record(self.folder.record(item))
+                    records.append(record if record is not None else done[item]["result"]["record"])
+        records.sort(key=lambda r: (r["id"], sample_index(r)))
+        return records, failed
+
+    def index_of(self, item_id: str) -> int:
+        """The sample index of an item (``items``' payloads; 0 for an example's own item)."""
+        return int(self.payloads.get(item_id, {}).get("sample", 0))
+
     def finish(self, report: StageReport) -> None:
         """results.json and run.json from the records of every selected example scored now or earlier, by this
         process or another on the same folder (the ledger: ``driver.ledger_outcomes``; a failure counts while
@@ -248,19 +332,15 @@ class EvaluateStage(Stage):
             return
         self.folder.examples_dir.mkdir(parents=True, exist_ok=True)
         self.folder.cache_dir.mkdir(exist_ok=True)
-        done, failed = ledger_outcomes(self, report)
-        records = []
-        for sample_id, entry in done.items():
-            record = read_record(self.folder.record(sample_id))
-            records.append(record if record is not None else entry["result"]["record"])
-        records.sort(key=lambda r: r["id"])
+        done, failed_items = ledger_outcomes(self, report)
+        records, failed = self._outcomes(report.selected, done, failed_items)
         complete_ids = {r["id"] for r in records}
         missing_metrics = sorted({m for r in records for m in r.get("skipped", {})})
         coverage = coverage_summary(records)
-        refs = [self.data_dir / i for i in report.selected]
-        dataset = set_identity(refs)
+        selected_examples = list(dict.fromkeys(self.example_of(i) for i in report.selected))
+        dataset = set_identity([self.data_dir / i for i in selected_examples])
         unverified = unverified_reason(dataset)  # a published set whose MD5 nobody checked is never official
-        official = (len(self.all_ids) == EVAL_SIZE and len(report.selected) == len(self.all_ids)
+        official = (len(self.all_ids) == EVAL_SIZE and set(report.selected) == set(self.payloads)
                     and complete_ids == set(self.all_ids) and not failed and not missing_metrics
                     and not coverage["short"] and unverified is None)
         self.skipped = {m: _skip_reason(records, m, self.nets) for m in missing_metrics}
@@ -268,10 +348,15 @@ class EvaluateStage(Stage):
                    "protocol": {**self.rules.facts(), "first_frame_check": self.first_frame_check,
                                 "allow_short": self.allow_short},
                    "dataset": dataset, "official": official, "metrics": list(self.metrics),
-                   "n_examples": len(records), "n_reference": len(self.all_ids), "failed": failed,
+                   "n_examples": len(complete_ids), "n_reference": len(self.all_ids), "failed": failed,
                    "skipped_metrics": self.skipped, "coverage": coverage, **aggregate(records, self.metrics),
                    "readouts": aggregate_readouts(records, self.root)}
-        notes = {r["id"]: r["notes"] for r in records if r.get("notes")}
+        higher = {m: METRICS[m].higher_is_better for m in self.metrics}
+        # several samples per example: the headline above is over per-example sample means; the spreads, the
+        # best of K (labelled, never the headline) and the variance components for the report's power table
+        results["samples"] = samples_summary(records, self.metrics, higher)
+        results["variance"] = variance_components(records, self.metrics)
+        notes = example_notes(records)
         if notes:  # values the protocol's rules leave undefined, with the reason (e.g. the release would stop)
             results["notes"] = notes
         if self.shard.count > 1:
@@ -279,6 +364,10 @@ class EvaluateStage(Stage):
         if not official:
             results["why_not_official"] = why_not_official(self.all_ids, complete_ids, failed, missing_metrics,
                                                            coverage["short"]) + ([unverified] if unverified else [])
+        # -- evaluate --envelope: the records against the physical envelope (not part of any example's key) --
+        if self.envelope is not None:
+            results["envelope"] = envelope_block(self.envelope, records)
+        # -- end of the envelope block --
         write_json(self.folder.results, results, indent=2, allow_nan=False)
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
         for sample_id in report.ran:
@@ -320,15 +409,35 @@ class EvaluateWorker(StageWorker):
         self.protocol = get_protocol(job.get("protocol"))
         self.first_frame_check = bool(job.get("first_frame_check", True))
         self.allow_short = bool(job.get("allow_short", False))
+        #: the reference side of the last example scored: items come example by example, so the next samples of
+        #: that example reuse its reference files and everything derived from them (``reference_side``)
+        self.reference: ReferenceSide | None = None
+        self._reference_lock = threading.Lock()
+
+    def reference_side(self, example: str, ref_hash: str | None) -> ReferenceSide:
+        """The reference side of ``example``: the last one when it is of the same bundle content (``ref_hash``,
+        the key's reference hash), else a new one (which replaces it), told how many samples the example has."""
+        path = self.data_dir / example
+        with self._reference_lock:  # (a local executor may call one worker from several threads)
+            if self.reference is None or not self.reference.serves(path, ref_hash):
+                self.reference = None  # the previous example's arrays are freed before the next are read
+                try:
+                    samples = len(sample_files(self.pred_dir, example))
+                except EXAMPLE_ERRORS:  # clashing names: that sample's key failed already; the others are scored
+                    samples = 1
+                self.reference = ReferenceSide.read(path, ref_hash, samples)
+            return self.reference
 
     def run(self, item_id: str, payload: dict, staging: Path, progress: Progress, facts: dict) -> ItemResult:
         timings: dict[str, float] = {"decode_s": 0.0, "perception_s": 0.0, "metrics_s": 0.0}
-        pred = find_prediction(self.pred_dir, item_id)
-        if pred is None:
-            raise EvaluationError(f"{item_id}: its prediction disappeared from {self.pred_dir}")
-        record = _score_one(Sample(self.data_dir / item_id), pred, self.backend, self.nets, self.model,
+        example, index = payload.get("example", item_id), int(payload.get("sample", 0))  # item_id: their name
+        pred = Path(facts["prediction"])
+        if not (pred.exists() or pred.is_symlink()):
+            raise EvaluationError(f"{item_id}: its prediction {pred.name} disappeared from {self.pred_dir}")
+        reference = self.reference_side(example, facts.get("ref_hash"))
+        record = _score_one(reference.sample, pred, self.backend, self.nets, self.model,
                             facts["input_key"], staging, self.cache_dir, timings, self.protocol,
-                            self.first_frame_check, self.allow_short, progress)
+                            self.first_frame_check, self.allow_short, progress, index=index, reference=reference)
         out = RunFolder(Path())  # the paths under the run folder, as written under staging
         outputs = [out.arrays(item_id), out.readouts(item_id), out.record(item_id)]  # the record last: done
         return ItemResult(outputs=[p.as_posix() for p in outputs], result={"record": record, "timings": timings})
@@ -347,65 +456,96 @@ def clip_coverage(clip_times_s: np.ndarray, ref_times_s: np.ndarray, fps: float)
             "short": bool(n < len(ref_times_s))}
 
 
+def _perceive(backend, sample: Sample, video, pred: Path, cache_dir: Path, item: str, key: str) -> Perception:
+    """The backend's perception of the sample's video, cached in ``cache_dir`` as ``<item>-<backend>-<key>.npz``
+    (an older cache of the item is replaced) unless the backend says recomputing is cheaper (gt)."""
+    cache = cache_dir / f"{item}-{backend.name}-{key[:16]}.npz"
+    if not getattr(backend, "cache", True):
+        return backend.perceive(sample, video, pred)
+    if cache.exists():
+        return Perception.load(cache)
+    perceived = backend.perceive(sample, video, pred)
+    for old_cache in cache_dir.glob(f"{glob.escape(item)}-{backend.name}-*.npz"):
+        old_cache.unlink()
+    perceived.save(cache)
+    return perceived
+
+
 def _score_one(sample: Sample, pred: Path, backend, nets: FeatureNets, model: str, key: str, staging: Path,
                cache_dir: Path, timings: dict[str, float], protocol: Protocol, first_frame_check: bool = True,
-               allow_short: bool = False, progress: Progress = lambda done, total: None, index: int = 0) -> dict:
+               allow_short: bool = False, progress: Progress = lambda done, total: None, index: int = 0,
+               reference: ReferenceSide | None = None) -> dict:
     """Decode, check coverage, perceive (cached under ``cache_dir`` by input key ``key``), align and score
     sample ``index`` of one example (``pred``: its video); writes its .npz, .readouts.json and .json under
     ``staging/examples/`` (a run folder's layout), named by the sample's item (``folders.sample_item``: the
     example id for sample 0), and returns the record (``id``: the example, ``sample``: ``index``). A clip short
-    of the reference span is refused (EvaluationError) unless ``allow_short``."""
+    of the reference span is refused (EvaluationError) unless ``allow_short``. ``reference``: the example's
+    ``ReferenceSide`` of ``sample`` (the worker keeps it for the example's samples, so that the reference side is
+    read and derived once per example; the scores are the same without it); its large files are read on a
+    background thread while the video is decoded, as is the world state of a backend with ``prefetch`` (gt).
+    ``timings`` gains decode_s, reference_s (waiting for the reference's files), perception_s, metrics_s,
+    readouts_s and write_s."""
+    if reference is None or reference.sample is not sample:
+        reference = ReferenceSide(sample)
+    reference.prefetch()
+    if hasattr(backend, "prefetch"):  # gt: the world state is read while the video is decoded
+        backend.prefetch(pred)
     sample_id = sample.sample_id
     item = sample_item(sample_id, index)
     steps = EvaluateWorker.STEPS
     t0 = time.time()
-    ref_times = reference_times(sample.n_frames, sample.fps)
+    ref_times = reference.times_s
     # Decode only up to the last reference time unless the backend needs every generated frame (neural:
     # CoTracker3 offline and VDA see the whole clip, as in the published runs).
     video = protocol.decode(pred, until_s=None if getattr(backend, "whole_clip", True) else float(ref_times[-1]))
     w, h = sample.resolution
     if video.size != (w, h):
         video.frames = resize_frames(video.frames, (w, h))
-    facts = {"first_frame": compare_first_frames(video.frames[0], sample.frame(0)).facts(),
+    facts = {"first_frame": compare_first_frames(video.frames[0], reference.first_frame).facts(),
              "coverage": clip_coverage(video.times_s, ref_times, sample.fps)}
     why = refusal(facts, pred, sample.path, first_frame_check, allow_short)
     if why is not None:  # another set's inputs, or short of the span: refused rather than scored
         raise EvaluationError(why)
-    video.frames = protocol.prepare(video.frames)
+    video.frames = protocol.prepare(video.frames, in_place=True)
     timings["decode_s"] += time.time() - t0
     progress(1, steps)
     t0 = time.time()
-    cache = cache_dir / f"{item}-{backend.name}-{key[:16]}.npz"
-    if not getattr(backend, "cache", True):  # cheaper to recompute than to store (gt)
-        perceived = backend.perceive(sample, video, pred)
-    elif cache.exists():
-        perceived = Perception.load(cache)
-    else:
-        perceived = backend.perceive(sample, video, pred)
-        for old_cache in cache_dir.glob(f"{glob.escape(item)}-{backend.name}-*.npz"):
-            old_cache.unlink()
-        perceived.save(cache)
+    perceived = _perceive(backend, sample, video, pred, cache_dir, item, key)
     timings["perception_s"] += time.time() - t0
+    t0 = time.time()
+    reference.wait()
+    timings["reference_s"] = timings.get("reference_s", 0.0) + time.time() - t0
     progress(2, steps)
     aligned = perceived.aligned(ref_times)
-    gen_rgb = align_video(video, ref_times)
+    gen_rgb = align_video(video, ref_times, copy=False)
     t0 = time.time()
-    inputs = metric_inputs(sample, gen_rgb, aligned, nets, edge_rules=protocol.edge_rules)  # metrics and readouts
-    scores = score_inputs(inputs)
-    timings["metrics_s"] += time.time() - t0
+    inputs = metric_inputs(sample, gen_rgb, aligned, nets, edge_rules=protocol.edge_rules,  # metrics and readouts
+                           reference=reference)
+    out = RunFolder(staging)
+    out.examples_dir.mkdir(parents=True, exist_ok=True)
+    readouts: dict = {}  # the summary for the record and the seconds it took
+
+    def with_readouts(partial: dict) -> None:  # the readouts (IdDrift feeds one) while SSIM may still compute
+        started = time.time()
+        readouts["summary"] = example_readouts(sample, inputs, partial, staging, item)
+        readouts["seconds"] = time.time() - started
+
+    scores = score_inputs(inputs, after=with_readouts)
+    timings["metrics_s"] += time.time() - t0 - readouts["seconds"]
+    timings["readouts_s"] = timings.get("readouts_s", 0.0) + readouts["seconds"]
     record = {"id": sample_id, "sample": int(index), "model": model, "task": sample.task, "partition": sample.partition,
               "protocol": protocol.name,
               "frames_compared": int(gen_rgb.shape[0]), **facts, "input_key": key,
               "perception": backend.name,
               "metrics": {m: (_finite_or_none(r.value) if r is not None else None) for m, r in scores.items()},
-              "skipped": {m: nets.skipped.get(m, "not computed") for m, r in scores.items() if r is None},
+              "skipped": skip_reasons(scores, inputs, nets),
               "notes": {m: r.note for m, r in scores.items() if r is not None and r.note}}
-    out = RunFolder(staging)
-    out.examples_dir.mkdir(parents=True, exist_ok=True)
-    record["readouts"] = example_readouts(sample, inputs, scores, staging, item)
+    record["readouts"] = readouts["summary"]
+    t0 = time.time()
     arrays = {m: np.asarray(r.per_frame, np.float64) for m, r in scores.items()
               if r is not None and r.per_frame is not None}
     np.savez_compressed(out.arrays(item), **arrays)
     write_json(out.record(item), record, indent=2, allow_nan=False)  # NaN refused: null is written
+    timings["write_s"] = timings.get("write_s", 0.0) + time.time() - t0
     progress(3, steps)
     return record

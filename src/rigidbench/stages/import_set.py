@@ -20,7 +20,7 @@ from typing import Callable
 from ..config import registry as load_registry
 from ..datasets.convert import DIGEST_VERSION, convert_sample, find_published_root, published_samples, source_digest
 from ..datasets.datadir import data_lock, format_bytes, prepare_data_dir
-from ..driver import ItemResult, Key, RunOptions, Stage, StageReport, StageWorker, ledger_path, run_stage
+from ..driver import Adopted, ItemResult, Key, RunOptions, Stage, StageReport, StageWorker, ledger_path, run_stage
 from ..errors import EXAMPLE_ERRORS, BundleError, UserError
 from ..groundtruth import bundle as B
 from ..hashing import digest as driver_digest
@@ -112,7 +112,8 @@ class ImportStage(Stage):
 
     def adopt(self, item_id, payload, key):
         digest = key.facts["digest"]
-        return {"digest": digest} if _is_current(self.split_dir / item_id, digest) else None
+        current = _is_current(self.split_dir / item_id, digest)
+        return Adopted({"digest": digest}, "a bundle converted from these source files") if current else None
 
 
 def import_published(src: str | Path, data: str | Path, *, dataset: dict | None = None, registry=None,

@@ -23,6 +23,18 @@ run writes generation.json again, and rewrites a damaged or missing one. Folders
 of this stage are read in one place, section "older layouts" at the end, only when an example has a video
 but no ledger entry.
 
+Several samples per example (``predict --samples K``, default 1): the stage's items are then (example, sample)
+pairs, in example-major order, named by the one naming rule (``folders.sample_item``): sample 0 is ``<id>``
+(its files ``<id>.mp4``, ``<id>.state.npz``, exactly as with one sample), sample k >= 1 is ``<id>.s<k>``
+(``<id>.s<k>.mp4``, ``<id>.s<k>.state.npz``). Sample k is predicted from the example's bundle with seed
+``sample_seed(base, id, k)`` (``SAMPLE_SEED_RULE``; sample 0's is the example's own seed). Each sample has its
+own key, ledger entry, lock and record (generation.json's records are keyed by item; with several samples each
+says its "example" and "sample", and the header's "samples" the seed rule), and a hosted model is paid once per
+sample (its resume state is the item's, ``PredictContext.item``). Sample 0's key is the key an example had
+before there were samples, so raising K on a finished folder makes only the new samples, and a killed run
+resumes only the samples it had not committed. ``--ids`` and ``--limit`` choose examples (all their samples go
+along), ``--shard`` splits the samples.
+
 Hosted runs in this process stop gracefully on SIGTERM or Ctrl-C: no new example starts and no new
 prediction is created; requests already sent get a few seconds (the client's ``stop_grace_s``, 3 s) to be
 answered and recorded, and outputs already paid for to be downloaded, then they are cut off (a creation cut
@@ -54,18 +66,18 @@ from typing import Any
 from ..atomic import atomic_file
 from ..benchmark import NEGATIVE_PROMPT, full_prompt
 from ..context import RunContext
-from ..driver import (ItemResult, RunOptions, Stage, StageReport, StageWorker, plan_only, read_ledger,
+from ..driver import (Adopted, ItemResult, RunOptions, Stage, StageReport, StageWorker, plan_only, read_ledger,
                       run_stage, stage_dir)
 from ..errors import EXAMPLE_ERRORS, UserError
 from ..evaluation.provenance import versions
 from ..executors import LocalExecutor, Resources, failure_record
-from ..folders import (FRAMES_DIR, METADATA_FILE, VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name,
-                       state_path)
+from ..folders import (FRAMES_DIR, METADATA_FILE, SPEC_FILE, VIDEO_EXTENSIONS, PredictionsFolder, find_prediction, frame_name,
+                       sample_item, state_path)
 from ..groundtruth.bundle import Sample, bundle_dirs, read_bundle_file, refuse_imported
 from ..hashing import digest, file_digest
 from ..jsonio import read_json, write_json
-from ..predictors import (SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo, example_seed,
-                          model_inputs, predictor_info)
+from ..predictors import (SAMPLE_SEED_RULE, SEED_RULE, Kind, PredictContext, Prediction, Predictor, PredictorInfo,
+                          model_inputs, predictor_info, sample_seed)
 from ..video import write_video
 
 log = logging.getLogger(__name__)
@@ -78,11 +90,15 @@ WORKER = "rigidbench.stages.predict:PredictWorker"
 
 @dataclass(frozen=True)
 class DryRunFacts:
-    """What a dry run adds to its ``StageReport`` (``report.facts``): the examples a run would generate, in
-    selection order, and the paid API calls that takes."""
+    """What a dry run adds to its ``StageReport`` (``report.facts``): the predictions (items: ``<id>`` or
+    ``<id>.s<k>``) a run would generate, in selection order, and the paid API calls that takes (one per
+    prediction of a paid model: K per example with ``samples`` K, less those already made); ``note``: what
+    the user should know about the samples (K samples of a model that takes no seed), None when nothing."""
 
     planned: list[str]
     paid_calls: int
+    samples: int = 1
+    note: str | None = None
 
 
 def write_prediction(pred: Prediction, out_dir: str | Path, sample_id: str, fps: float | None = None) -> None:
@@ -120,21 +136,26 @@ class PredictStage(Stage):
     written into the predictions folder ``out_dir`` by ``info``'s predictor with ``settings``.
 
     ``source``: the predictor the run's header, preflight and lost-record recovery come from; ``instance``:
-    the worker a local executor uses; ``stopper``: SIGTERM/Ctrl-C handlers installed while examples run."""
+    the worker a local executor uses; ``stopper``: SIGTERM/Ctrl-C handlers installed while examples run;
+    ``samples``: how many samples (generations) per example, each an item of its own (module docstring)."""
 
     name = STAGE
     worker = WORKER
 
     def __init__(self, out_dir: Path, split_dir: Path, info: PredictorInfo, settings: dict,
                  ctx: PredictContext, source: Predictor | None = None, instance: "PredictWorker | None" = None,
-                 stopper: "_GracefulStop | None" = None):
+                 stopper: "_GracefulStop | None" = None, samples: int = 1):
         self.out_dir, self.split_dir = Path(out_dir), Path(split_dir)
         self.info, self.settings, self.ctx = info, settings, ctx
         self.source, self.instance, self.stopper = source, instance, stopper
+        self.samples = check_samples(samples)
+        if self.samples > 1:
+            self.unit = "sample"  # what the run's progress and summary count
         self.resources = predict_resources(info, ctx)
         self.seeded = settings.get("seed") is not None  # ctx.seed is the base of per-example seeds
         self.stopped: dict[str, dict] = {}  # examples this run started and stopped: their records
         self.older = OlderLayouts(self)
+        self._samples: dict[str, tuple[str, int]] = {}  # item -> (example, sample index), from items()
 
     # -- what the driver asks --------------------------------------------------------------------------
 
@@ -147,20 +168,45 @@ class PredictStage(Stage):
         return str(self.split_dir)
 
     def items(self) -> dict[str, dict]:
-        return {bundle.name: {"bundle": str(bundle)} for bundle in bundle_dirs(self.split_dir)}
+        """Every (example, sample) of the split, example-major: ``{item: {"bundle", "example", "sample"}}``."""
+        found: dict[str, dict] = {}
+        for bundle in bundle_dirs(self.split_dir):
+            for k in range(self.samples):
+                item = sample_item(bundle.name, k)
+                if item in found:
+                    raise UserError(f"{self.split_dir}: example {bundle.name} has the name of sample "
+                                    f"{found[item]['sample']} of example {found[item]['example']} (the naming rule "
+                                    f"<id>.s<k>); rename the example's folder or predict one sample per example")
+                found[item] = {"bundle": str(bundle), "example": bundle.name, "sample": k}
+        self._samples = {item: (p["example"], p["sample"]) for item, p in found.items()}
+        return found
+
+    def sample_of(self, item_id: str) -> tuple[str, int]:
+        """(example id, sample index) of an item of ``items()``; an unknown item is sample 0 of itself."""
+        return self._samples.get(item_id, (item_id, 0))
+
+    def example_of(self, item_id: str) -> str:
+        return self.sample_of(item_id)[0]
 
     def check(self, selected: list[str]) -> None:
-        """A predictor that re-simulates the scene refuses imported bundles (they hold no scene to simulate)."""
+        """A predictor that re-simulates the scene refuses imported bundles (they hold no scene to simulate),
+        except those whose scene was rebuilt from the published metadata into the ``spec_dir`` option's folder
+        (the ``twin`` predictor's geometry-only twins of a published example, ``flows.envelope``)."""
         if self.info.needs_blender:
-            refuse_imported([self.split_dir / i for i in selected],
+            examples = dict.fromkeys(self.example_of(i) for i in selected)
+            rebuilt = self.ctx.options.get("spec_dir")
+            refuse_imported([self.split_dir / i for i in examples
+                             if not (rebuilt and (Path(rebuilt) / i / SPEC_FILE).is_file())],
                             f"predictor '{self.info.name}' re-simulates the scene")
 
     def key(self, item_id: str, payload: Any) -> str:
-        """The predictor's settings, the example's own seed (None for a predictor that takes none) and a hash
-        of its model inputs (``input_digest``); for the failure modes, which read the whole reference bundle,
-        also its metadata (a re-rendered bundle's differs, if only in its render times)."""
+        """The predictor's settings, the sample's own seed (None for a predictor that takes none) and a hash
+        of the example's model inputs (``input_digest``); for the failure modes, which read the whole reference
+        bundle, also its metadata (a re-rendered bundle's differs, if only in its render times). Sample 0's
+        seed is the example's, so its key is the one an example had before there were samples."""
         bundle = Path(payload["bundle"])
-        seed = example_seed(self.ctx.seed, item_id) if self.seeded else None
+        example, k = payload.get("example", item_id), int(payload.get("sample", 0))
+        seed = sample_seed(self.ctx.seed, example, k) if self.seeded else None
         parts = {"settings": self.settings, "seed": seed, "inputs": input_digest(bundle)}
         if self.info.kind == Kind.FAILURE_MODE:
             parts["reference"] = read_bundle_file(bundle, METADATA_FILE, file_digest)
@@ -172,20 +218,22 @@ class PredictStage(Stage):
                               "kind": info.kind.value, "needs_blender": info.needs_blender,
                               "writes_state": info.writes_state},  # so a worker needs no registration of its own
                 "split_dir": str(self.split_dir.resolve()), "out_dir": str(self.out_dir.resolve()),
-                "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options)}
+                "run": ctx.run.job(), "severity": ctx.severity, "seed": ctx.seed, "options": dict(ctx.options),
+                "samples": self.samples}
 
     def worker_instance(self) -> "PredictWorker | None":
         return self.instance
 
     def intact(self, item_id: str) -> bool:
-        """The video is there (``find_prediction``) and, for a predictor that writes it, the state beside it."""
+        """The item's video is there (``find_prediction``: ``<item>.<ext>``) and, for a predictor that writes
+        it, the state beside it."""
         try:
             video = find_prediction(self.out_dir, item_id)
         except EXAMPLE_ERRORS:
             return False
         return video is not None and (not self.info.writes_state or state_path(video).is_file())
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> Adopted | None:
         """An example with a video but no ledger entry: a folder an earlier version of this stage wrote, or a
         run killed between committing the video and writing its ledger entry (``OlderLayouts.adopt``)."""
         return self.older.adopt(item_id) if self.intact(item_id) else None
@@ -206,7 +254,7 @@ class PredictStage(Stage):
         path = PredictionsFolder(self.out_dir).generation
         examples = self.records(report)
         if examples or path.exists():
-            doc = {**self.header(), "examples": examples}
+            doc = {**self.header(), **self.samples_header(examples), "examples": examples}
             if read_json(path, "it is written again from the ledger") != doc:
                 write_json(path, doc, indent=2, allow_nan=False)
         if report.completed:
@@ -220,16 +268,29 @@ class PredictStage(Stage):
                 "settings": self.settings, "model": self.source.generation_info(self.ctx) if self.source else {},
                 "versions": versions(VERSION_PACKAGES)}
 
+    def samples_header(self, records: dict[str, dict]) -> dict:
+        """generation.json's "samples", only when there are several per example (one sample per example writes
+        what it always did): the most per example (this run's K, or more that earlier runs made) and how each
+        sample's seed follows from the base seed."""
+        most = max([self.samples] + [r["sample"] + 1 for r in records.values() if isinstance(r.get("sample"), int)])
+        if most <= 1:
+            return {}
+        seeds = SAMPLE_SEED_RULE if self.seeded else (
+            "none: the model takes no seed, so the samples of an example differ only by its own randomness (a "
+            "hosted model's: the service's; a deterministic predictor makes the same video each time)")
+        return {"samples": {"per_example": most, "seeds": seeds}}
+
     def records(self, report: StageReport) -> dict[str, dict]:
-        """Every example's record, sorted by id: the ledger entries made with this run's key for their example
-        (whichever process made them; an example outside the selection, with the key it would have), then the
-        examples that failed before they ran, then those this run started and stopped."""
+        """Every prediction's record, sorted by item: the ledger entries made with this run's key for their item
+        (whichever process made them; one outside the selection, or a sample beyond this run's K, with the key it
+        would have), then the items that failed before they ran, then those this run started and stopped. With
+        several samples per example every record says its "example" and "sample"."""
         found: dict[str, dict] = {}
         folder = stage_dir(self.out_dir, STAGE)
         for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
             entry = read_ledger(self.out_dir, STAGE, path.stem)
             if entry is None or entry.get("status") not in ("succeeded", "failed") or \
-                    entry.get("key") != self.key_of(path.stem, report):
+                    entry.get("key") != self.key_of(path.stem, report, entry):
                 continue
             found[path.stem] = self.record_of(path.stem, entry.get("status"), entry.get("result"), entry.get("error"))
         for item_id, reason in report.failed.items():
@@ -237,24 +298,44 @@ class PredictStage(Stage):
         for item_id, record in self.stopped.items():
             if item_id not in found and item_id not in report.succeeded:
                 found[item_id] = record
+        placed = {item: self.recorded_sample(item, record) for item, record in found.items()}
+        if self.samples > 1 or any(k > 0 for _, k in placed.values()):
+            for item, (example, k) in placed.items():
+                found[item] = {**found[item], **sample_fields(example, k, 2)}
         return dict(sorted(found.items()))
 
-    def key_of(self, item_id: str, report: StageReport) -> str | None:
-        """This run's key of ``item_id`` (the plan's, or computed for an example outside the selection); None
-        when it has none (no such bundle, or an unreadable one)."""
+    def key_of(self, item_id: str, report: StageReport, entry: dict | None = None) -> str | None:
+        """This run's key of ``item_id`` (the plan's, or computed for an item outside the selection: its example
+        and sample from ``items()``, else from its ledger ``entry``'s record); None when it has none (no such
+        bundle, or an unreadable one)."""
         if item_id in report.keys:
             return report.keys[item_id]
-        if item_id in report.selected or not (self.split_dir / item_id).is_dir():
+        if item_id in report.selected:
+            return None
+        example, k = self.recorded_sample(item_id, (entry or {}).get("result"))
+        if not (self.split_dir / example).is_dir():
             return None
         try:
-            return self.key(item_id, {"bundle": str(self.split_dir / item_id)})
+            return self.key(item_id, {"bundle": str(self.split_dir / example), "example": example, "sample": k})
         except EXAMPLE_ERRORS:
             return None
+
+    def recorded_sample(self, item_id: str, record: Any) -> tuple[str, int]:
+        """(example, sample) of ``item_id``: from ``items()``, else what its record says when that names this
+        item (a record without them, from before samples, is sample 0 of the item itself)."""
+        if item_id in self._samples:
+            return self._samples[item_id]
+        if isinstance(record, dict) and isinstance(record.get("example"), str) and \
+                type(record.get("sample")) is int and record["sample"] >= 0 and \
+                sample_item(record["example"], record["sample"]) == item_id:
+            return record["example"], record["sample"]
+        return item_id, 0
 
     def record_of(self, item_id: str, status, result: dict | None, error: str | None) -> dict:
         record = dict(result or {})
         if status == "failed":
-            record.setdefault("seed", example_seed(self.ctx.seed, item_id))
+            example, k = self.recorded_sample(item_id, record)
+            record.setdefault("seed", sample_seed(self.ctx.seed, example, k))
             record.update(status="failed", error=record.get("error") or error or "failed")
         return record
 
@@ -266,29 +347,46 @@ class PredictStage(Stage):
         else:
             self.stopped.pop(sample_id, None)
 
-    def rebuild(self, sample_id: str) -> dict:
+    def rebuild(self, item_id: str) -> dict:
         """What a finished video's lost record can be rebuilt from: the predictor's state, seed and prompts."""
-        entry: dict = {"seed": example_seed(self.ctx.seed, sample_id)}
+        example, k = self.sample_of(item_id)
+        entry: dict = {"seed": sample_seed(self.ctx.seed, example, k), **sample_fields(example, k, self.samples)}
         try:
-            inputs = model_inputs(Sample(self.split_dir / sample_id))
+            inputs = model_inputs(Sample(self.split_dir / example))
             entry.update(prompt=inputs.prompt, negative_prompt=inputs.negative_prompt)
         except EXAMPLE_ERRORS:
             pass
-        entry.update((self.source.recover_record(self.out_dir, sample_id) if self.source else None) or {})
+        entry.update((self.source.recover_record(self.out_dir, item_id) if self.source else None) or {})
         return entry
+
+
+def check_samples(samples: Any) -> int:
+    """The number of samples per example: an int >= 1 (a UserError otherwise)."""
+    if type(samples) is not int or samples < 1:
+        raise UserError(f"samples per example must be a whole number >= 1, got {samples!r}")
+    return samples
+
+
+def sample_fields(example: str, k: int, samples: int) -> dict:
+    """What a prediction's record says of its sample: its example and index, whenever there are several per
+    example (``samples`` > 1, or a sample k > 0 of an earlier run); nothing with one, so such records are as
+    they always were."""
+    return {"example": example, "sample": k} if samples > 1 or k > 0 else {}
 
 
 def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | None = None,
             run: RunOptions = RunOptions(), predictor: Predictor | None = None,
-            dry_run: bool = False) -> StageReport:
+            dry_run: bool = False, samples: int = 1) -> StageReport:
     """Run predictor ``name`` (a registered name or a "module:attr" plug-in) over the reference bundles
     in ``split_dir``; returns the driver's report (with ``dry_run``: the plan, its ``facts`` a
     ``DryRunFacts`` saying what would be generated and how many paid calls that takes, sending and writing
-    nothing). ``run`` selects the examples
+    nothing). ``samples``: how many predictions per example (``<id>``, ``<id>.s1``, ... each with its own
+    seed; see the module docstring). ``run`` selects the examples
     and runs them (default: all, in this process, ``predictor.concurrency`` at once)."""
     ctx = ctx or PredictContext()
     if not 0.0 <= ctx.severity <= 1.0:
         raise UserError(f"severity must lie in [0, 1], got {ctx.severity}")
+    samples = check_samples(samples)
     out_dir = Path(out_dir)
     split_dir = Path(split_dir)
     ctx = replace(ctx, out_dir=out_dir)
@@ -304,8 +402,9 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
         if settings.get("seed") is not None:  # a seeded predictor: ctx.seed is the base of per-example seeds
             settings["seeds"] = SEED_RULE
         if dry_run:
-            return _dry_run(PredictStage(out_dir, split_dir, info, settings, ctx), run, predictor, ctx)
-        stage = PredictStage(out_dir, split_dir, info, settings, ctx, source)
+            return _dry_run(PredictStage(out_dir, split_dir, info, settings, ctx, samples=samples), run, predictor,
+                            ctx)
+        stage = PredictStage(out_dir, split_dir, info, settings, ctx, source, samples=samples)
         if local:
             executor = LocalExecutor(threads=max(executor.threads, int(predictor.concurrency(ctx))))
             worker = stage.instance = PredictWorker(stage.job(), predictor=predictor, ctx=ctx)
@@ -328,21 +427,27 @@ def predict(name: str, split_dir: Path, out_dir: Path, ctx: PredictContext | Non
 
 
 def _dry_run(stage: PredictStage, run: RunOptions, predictor: Predictor, ctx: PredictContext) -> StageReport:
-    """Print the request of every example that a real run would generate (the driver's ``plan_only``: the
-    same selection, check and plan as a run); send and write nothing."""
+    """Print the request of every prediction (every sample of every example) that a real run would generate
+    (the driver's ``plan_only``: the same selection, check and plan as a run); send and write nothing."""
     report, todo = plan_only(stage, run)
     planned = []
     for task in todo:
-        sample_id = task["id"]
+        item_id, payload = task["id"], task["payload"]
+        example, k = payload["example"], payload["sample"]
         try:  # a damaged bundle fails its example, as in a run (plan() reports one whose key fails the same way)
-            request = predictor.describe(Sample(stage.split_dir / sample_id), example_context(ctx, sample_id))
+            request = predictor.describe(Sample(stage.split_dir / example), example_context(ctx, example, k, item_id))
         except EXAMPLE_ERRORS as exc:
-            report.failed[sample_id] = str(exc)
-            log.warning("%s: example %s failed: %s", stage.name, sample_id, exc)
+            report.failed[item_id] = str(exc)
+            log.warning("%s: %s %s failed: %s", stage.name, stage.unit, item_id, exc)
             continue
-        print(f"{sample_id}: {json.dumps(request, sort_keys=True)}")
-        planned.append(sample_id)
-    report.facts = DryRunFacts(planned, len(planned) if predictor.paid else 0)
+        print(f"{item_id}: {json.dumps(request, sort_keys=True)}")
+        planned.append(item_id)
+    note = None
+    if stage.samples > 1 and not stage.seeded:
+        note = (f"{predictor.name} takes no seed: its {stage.samples} samples of an example differ only by "
+                + ("the service's own randomness" if predictor.paid else "the model's own randomness (a "
+                   "deterministic predictor makes the same video each time)"))
+    report.facts = DryRunFacts(planned, len(planned) if predictor.paid else 0, stage.samples, note)
     return report
 
 
@@ -371,17 +476,18 @@ class PredictWorker(StageWorker):
         return self.stopping.is_set()
 
     def run(self, item_id: str, payload: Any, staging: Path, progress) -> ItemResult:
-        """Outputs: ``<id>.state.npz`` (when the prediction has one), then ``<id>.<ext>``; the result is the
-        example's record (the ledger keeps it)."""
+        """Outputs: ``<item>.state.npz`` (when the prediction has one), then ``<item>.<ext>`` (the item is
+        ``<id>`` or ``<id>.s<k>``); the result is the prediction's record (the ledger keeps it)."""
         if self.stopping.is_set():
             return ItemResult(status=INTERRUPTED, error="not started: the run was stopped",
                               result={"status": INTERRUPTED, "error": "not started: the run was stopped"})
-        info, ctx = self.predictor.info, example_context(self.ctx, item_id)
+        example, k = payload.get("example", item_id), int(payload.get("sample", 0))
+        info, ctx = self.predictor.info, example_context(self.ctx, example, k, item_id)
         started = time.time()
-        entry: dict = {"seed": ctx.seed}
+        entry: dict = {"seed": ctx.seed, **sample_fields(example, k, int(self.job.get("samples", 1)))}
         remove_temporaries(self.out_dir, item_id)
         try:
-            sample = Sample(self.split_dir / item_id)
+            sample = Sample(self.split_dir / example)
             inputs = model_inputs(sample)
             entry.update(prompt=inputs.prompt, negative_prompt=inputs.negative_prompt)
             pred = self.predictor.predict(sample, ctx)
@@ -472,9 +578,11 @@ def predict_resources(info, ctx: PredictContext) -> Resources:
     return Resources(num_cpus=1)
 
 
-def example_context(ctx: PredictContext, sample_id: str) -> PredictContext:
-    """``ctx`` with the seed of example ``sample_id``: ``example_seed(ctx.seed, sample_id)`` (ctx.seed is the base)."""
-    return replace(ctx, seed=example_seed(ctx.seed, sample_id))
+def example_context(ctx: PredictContext, example_id: str, k: int = 0, item: str | None = None) -> PredictContext:
+    """``ctx`` for sample ``k`` of example ``example_id`` (ctx.seed is the base): its seed, ``sample_seed(ctx.seed,
+    example_id, k)`` (for k = 0 the example's own, ``example_seed``), and its name ``item`` (default
+    ``sample_item(example_id, k)``), which a predictor keys its own per-prediction state by."""
+    return replace(ctx, seed=sample_seed(ctx.seed, example_id, k), item=item or sample_item(example_id, k))
 
 
 # -- older layouts ------------------------------------------------------------------------------------------
@@ -531,7 +639,7 @@ class OlderLayouts:
             self._read["generation"] = (examples if isinstance(examples, dict) else {}) if same else None
         return self._read["generation"]
 
-    def adopt(self, item_id: str) -> dict | None:
+    def adopt(self, item_id: str) -> Adopted | None:
         """The record of ``item_id``'s video (which is there) when an older layout shows it was made with this
         run's settings; None otherwise (it is predicted)."""
         stage = self.stage
@@ -539,15 +647,16 @@ class OlderLayouts:
         mine = settings_digest({"predictor": stage.info.name, "settings": stage.settings})
         if isinstance(old, dict) and old.get("id") == item_id and old.get("settings") == mine \
                 and isinstance(old.get("entry"), dict):
-            return {**old["entry"], "status": "succeeded"}
+            return Adopted({**old["entry"], "status": "succeeded"}, f"its record in {OLD_RECORDS_DIR}/")
         generation = self._generation()
         if generation is None and self._settings() != stage.settings:
             return None
         record = (generation or {}).get(item_id)
         if isinstance(record, dict) and record.get("status") == "succeeded":
-            return record
-        return {**stage.rebuild(item_id), "status": "succeeded",
-                "recovered": "the video was on disk without its record (an interrupted run); rebuilt on rerun"}
+            return Adopted(record, "its record in generation.json")
+        return Adopted({**stage.rebuild(item_id), "status": "succeeded",
+                        "recovered": "the video was on disk without its record (an interrupted run); rebuilt on rerun"},
+                       "its record rebuilt from the video (an interrupted run)")
 
     def clean(self) -> None:
         """Remove ``.predictor.json`` and ``.generation/`` once every video in the folder has its ledger entry."""

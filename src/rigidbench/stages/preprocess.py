@@ -46,7 +46,8 @@ from typing import Any
 import torch
 
 from ..benchmark import full_prompt
-from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage, stage_dir
+from ..driver import (Adopted, ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage,
+                      stage_dir)
 from ..errors import BundleError, ConfigError, UserError
 from ..executors import LocalExecutor, Resources
 from ..folders import FRAMES_DIR, METADATA_FILE, PROMPT_FILE, frame_name
@@ -225,8 +226,9 @@ class PreprocessStage(Stage):
                   "settings": self.settings_key, "prompts_encoded": 0}
         return result if _files_present(self.out, result) else None
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
-        return self._legacy_result(item_id)
+    def adopt(self, item_id: str, payload: Any, key: str) -> Adopted | None:
+        result = self._legacy_result(item_id)
+        return None if result is None else Adopted(result, "its entry in an older cache's manifest")
 
     # -- the shared work ------------------------------------------------------------------------------
 

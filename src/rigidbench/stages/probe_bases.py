@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..driver import ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage
+from ..driver import Adopted, ItemResult, RunOptions, Stage, StageReport, StageWorker, read_ledger, run_stage
 from ..errors import UserError
 from ..hashing import digest
 from ..perception.device import resolve_device
@@ -138,7 +138,7 @@ class BasesStage(Stage):
             return False
         return made_with is None or made_with == (read_ledger(self.out, self.name, item_id) or {}).get("key")
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> Adopted | None:
         path = self.out / "bases" / f"{item_id}.npz"
         if not path.is_file():
             return None
@@ -148,7 +148,7 @@ class BasesStage(Stage):
             return None
         if facts.get("key", key) != key or facts.get("version") != BASES_VERSION:
             return None  # fitted for another store, with other settings, or by an older INLP: fitted again
-        return {**facts, "digest": _bases_digest(cell)}
+        return Adopted({**facts, "digest": _bases_digest(cell)}, f"a bases file fitted this way ({path})")
 
 
 class BasesWorker(StageWorker):

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -56,16 +56,16 @@ POOLING = ("per slot: masks merged over the slot's frames, max-pooled to the tok
            "covered tokens")
 
 
-@dataclass
-class ExtractSummary:
-    out: Path
-    extracted: list[str] = field(default_factory=list)
-    skipped: list[str] = field(default_factory=list)
-    failed: dict[str, str] = field(default_factory=dict)
-    redone: dict[str, str] = field(default_factory=dict)
-    rows: int = 0
-    seconds: float = 0.0
-    report: StageReport | None = None
+@dataclass(frozen=True)
+class ExtractFacts:
+    """What ``run_extract`` adds to its ``StageReport`` (``report.facts``): the actor-slot rows of the clips made
+    this run (``rows``), those of them with no covered actor (``empty``: no rows), and the clips of the cache
+    without a bundle in --data (``missing``: clip -> why; not candidates, so outside the report's counts; the
+    store's manifest lists them as failed)."""
+
+    rows: int
+    empty: tuple[str, ...]
+    missing: dict[str, str]
 
 
 def clip_rows(sample: Sample, grid: tuple[int, int, int], frames: int):
@@ -311,19 +311,16 @@ def run_extract(backbone: str, cache_dir, data, out, *, model: str | None = None
                 taus=wan.DEFAULT_TAUS, device: str | None = None, run: RunOptions = RunOptions(),
                 chunk_size: int | None = None, seed: int = 0, dtype=None,
                 backbone_seed: int = wan.RANDOM_SEED, recipe: str | None = None,
-                overrides: dict | None = None) -> ExtractSummary:
+                overrides: dict | None = None) -> StageReport:
     """Extract the first ``limit`` clips of the cache (or the ``ids``; this ``shard``'s part) into the store
     ``out``, conditioned as the ``recipe`` (``ours`` or ``release``) with ``overrides`` of its choices
     (``recipe.Conditioning`` fields; ``dtype``, when given, is the forward precision). ``chunk_size`` is
-    accepted for older callers and unused (version 3 keeps one file pair per clip)."""
-    import time
-
-    start = time.perf_counter()
+    accepted for older callers and unused (version 3 keeps one file pair per clip). Returns the driver's
+    report, its ``facts`` an ``ExtractFacts``."""
     stage = ExtractStage(backbone, cache_dir, data, out, model=model, model_path=model_path, taus=taus,
                          device=device, seed=seed, dtype=dtype, backbone_seed=backbone_seed, limit=run.selection.limit,
                          recipe_name=recipe, overrides=overrides)
     report = run_stage(stage, run)
     rows = {i: int(report.results[i].get("rows", 0)) for i in report.ran}
-    return ExtractSummary(out=Path(out), extracted=[i for i in report.ran if rows[i]], skipped=list(report.reused),
-                          failed={**report.failed, **stage.missing}, redone=dict(report.redone),
-                          rows=sum(rows.values()), seconds=time.perf_counter() - start, report=report)
+    report.facts = ExtractFacts(sum(rows.values()), tuple(i for i in report.ran if not rows[i]), dict(stage.missing))
+    return report

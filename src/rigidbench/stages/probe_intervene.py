@@ -44,6 +44,7 @@ import csv
 import json
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +52,7 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_file
-from ..driver import ItemResult, RunOptions, Selection, Stage, StageWorker, run_stage
+from ..driver import ItemResult, RunOptions, Selection, Stage, StageReport, StageWorker, run_stage, validate_selection
 from ..errors import UserError
 from ..hashing import digest
 from ..jsonio import write_json
@@ -71,6 +72,17 @@ READOUTS = ("full", "direct")
 DEFAULT_TAUS = (0.3, 0.5, 0.7)
 
 
+@dataclass(frozen=True)
+class InterveneFacts:
+    """What ``run_intervene`` adds to the ``probe-intervene`` stage's ``StageReport`` (``report.facts``): the
+    content of intervene.json (``results``: the bootstrap summary over the clips done, every cell's bases facts,
+    the settings) and the report of the ``probe-bases`` stage it ran first (``bases``: the cells fitted now or up
+    to date)."""
+
+    results: dict
+    bases: StageReport
+
+
 class InterveneStage(Stage):
     """The chosen clips -> ``effects/<clip>.jsonl`` (one line per block x tau x variant x readout)."""
 
@@ -79,7 +91,7 @@ class InterveneStage(Stage):
     unit = "clip"
 
     def __init__(self, store: ActivationStore, cache: LatentCache, out: Path, clips: list[str], *, taus, blocks,
-                 full_readout: str, device: str, bases: dict[str, str],
+                 full_readout: str, device: str, bases: dict[str, str] | None = None,
                  conditioning: Conditioning = Conditioning()):
         self.store, self.cache, self.out, self.clips = store, cache, Path(out), clips
         self.conditioning = conditioning
@@ -91,9 +103,16 @@ class InterveneStage(Stage):
         self.backbone = {"backbone": man["backbone"], "model": man["model"], "model_path": man.get("model_path"),
                          "backbone_seed": man.get("backbone_seed"), "seed": man["seed"]}
         self.device = device
-        #: every cell's bases digest, in cell order
+        self.bases: dict[str, str] | None = None
+        self.settings_key: str | None = None
+        if bases is not None:
+            self.use_bases(bases)
+
+    def use_bases(self, bases: dict[str, str]) -> None:
+        """The bases the clips are intervened with: every cell's bases digest, in cell order (known once the
+        ``probe-bases`` stage has run; the selection is checked before, ``run_intervene``)."""
         self.bases = bases
-        self.settings_key = digest(self.settings, digest(store.identity), bases)
+        self.settings_key = digest(self.settings, digest(self.store.identity), bases)
 
     @property
     def root(self) -> Path:
@@ -107,6 +126,8 @@ class InterveneStage(Stage):
         return {c: {} for c in self.clips}
 
     def key(self, item_id: str, payload: Any) -> str:
+        if self.settings_key is None:
+            raise RuntimeError("InterveneStage: use_bases before its keys are computed")
         return digest(self.settings_key, self.store.clip_key(item_id),
                       self.cache.entry_key(item_id, self.conditioning.prompt))
 
@@ -193,10 +214,11 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, run: RunOptions = 
                   blocks=None, n_resamples: int = 20000, device: str | None = None,
                   dtype=None, full_readout: str = "resume", inlp_dtype=torch.float64,
                   clip_split: str = "all", recipe: str | None = None, overrides: dict | None = None,
-                  inlp_procedure: str | None = None) -> dict:
+                  inlp_procedure: str | None = None) -> StageReport:
     """The bases of every block x tau cell (stage ``probe-bases``), then the loss changes on the first
     ``run.selection.limit`` clips (stage ``probe-intervene``; the command's ``--clips``), then the bootstrap
-    tables over the clips done.
+    tables over the clips done. An unknown id in ``run.selection`` fails before any bases are fitted. Returns
+    the ``probe-intervene`` stage's report, its ``facts`` an ``InterveneFacts``.
     Conditioning and INLP procedure: those of ``recipe`` (default: the recipe the store was extracted with,
     and the store's own conditioning), with ``overrides`` of its choices (``dtype``, when given, is the
     forward precision) and ``inlp_procedure`` instead of the recipe's."""
@@ -218,22 +240,22 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, run: RunOptions = 
     inlp_dtype = str(inlp_dtype).replace("torch.", "")
     start = time.perf_counter()
 
-    # the candidate clips: the store's (all, or its training split) that are in the cache; an unknown id fails now
+    # the candidate clips: the store's (all, or its training split) that are in the cache
     cache = LatentCache(cache_dir)
     present = set(store.rows["clip"])
     pool = sorted(i for i, s in man["splits"].items() if i in present and (clip_split == "all" or s == "train"))
     candidates = [i for i in pool if i in cache.manifest["examples"]]
-    run.selection.apply(candidates, f"{acts} (clips also in {cache_dir})")
-    if not candidates[:run.selection.limit]:
+    if not candidates:
         raise UserError(f"{acts}: no {'training-split ' if clip_split == 'train' else ''}clips of the store are in "
                         f"the cache {cache_dir}")
+    stage = InterveneStage(store, cache, out, candidates, taus=taus, blocks=blocks, full_readout=full_readout,
+                           device=str(resolve_device(device)), conditioning=cond)
+    validate_selection(stage, run)  # an unknown id fails now, before the bases are fitted
 
     # 1. bases per cell (on the full activation corpus); 2. the loss changes on the selected clips
     cells = [(b, tau) for b in blocks for tau in taus]
     fitted, facts = fit_cells(store, out, cells, str(inlp_dev), inlp_dtype, procedure, progress=run.progress)
-    stage = InterveneStage(store, cache, out, candidates, taus=taus, blocks=blocks, full_readout=full_readout,
-                           device=str(resolve_device(device)), conditioning=cond,
-                           bases={cell_id(b, tau): fitted.results[cell_id(b, tau)]["digest"] for b, tau in cells})
+    stage.use_bases({cell_id(b, tau): fitted.results[cell_id(b, tau)]["digest"] for b, tau in cells})
     report = run_stage(stage, run)
     done = report.succeeded
     if not done:
@@ -243,23 +265,18 @@ def run_intervene(acts, cache_dir, out, *, taus=DEFAULT_TAUS, run: RunOptions = 
                if line.strip()]
     with atomic_file(out / "effects.jsonl") as tmp:
         tmp.write_text("".join(json.dumps(e) + "\n" for e in effects))
-    seconds = time.perf_counter() - start
-    return summarize(effects, facts, out, n_resamples, {"acts": str(Path(acts).resolve()), "backbone": man["backbone"],
-                                                        "model": man["model"], "taus": taus, "blocks": blocks,
-                                                        "clips": done, "seconds_this_run": seconds,
-                                                        "full_readout": full_readout, "clip_split": clip_split,
-                                                        "recipe": label, "conditioning": cond.as_dict(),
-                                                        "store_conditioning": store.conditioning.as_dict(),
-                                                        "inlp": {"procedure": procedure, "ridge_per_row": RIDGE,
-                                                                 "min_r2": MIN_R2,
-                                                                 "max_iter": MAX_ITER, "intercept": False,
-                                                                 "centred": False, "r2": "pooled",
-                                                                 "dtype": inlp_dtype if procedure == "stable" else
-                                                                 "float32 (ridge solved in float64)",
-                                                                 "device": str(inlp_dev)},
-                                                        "clips_this_run": len(report.ran),
-                                                        "bases_fitted_this_run": len(fitted.ran),
-                                                        "failed": report.failed, "redone": report.redone})
+    inlp_record = {"procedure": procedure, "ridge_per_row": RIDGE, "min_r2": MIN_R2, "max_iter": MAX_ITER,
+                   "intercept": False, "centred": False, "r2": "pooled",
+                   "dtype": inlp_dtype if procedure == "stable" else "float32 (ridge solved in float64)",
+                   "device": str(inlp_dev)}
+    meta = {"acts": str(Path(acts).resolve()), "backbone": man["backbone"], "model": man["model"], "taus": taus,
+            "blocks": blocks, "clips": done, "seconds_this_run": time.perf_counter() - start,
+            "full_readout": full_readout, "clip_split": clip_split, "recipe": label, "conditioning": cond.as_dict(),
+            "store_conditioning": store.conditioning.as_dict(), "inlp": inlp_record,
+            "clips_this_run": len(report.ran), "bases_fitted_this_run": len(fitted.ran), "failed": report.failed,
+            "redone": report.redone}
+    report.facts = InterveneFacts(summarize(effects, facts, out, n_resamples, meta), fitted)
+    return report
 
 
 def _intervention_recipe(store: ActivationStore, name: str | None, overrides: dict | None, dtype,

@@ -32,7 +32,8 @@ from typing import Any, Callable, Sequence
 from ..blender.render import render_spec
 from ..blender.session import bpy_available
 from ..config import Registry, RenderPreset, plain, registry as load_registry
-from ..driver import ItemResult, Progress, Redo, RunOptions, Stage, StageReport, StageWorker, Why, plan_only, run_stage
+from ..driver import (Adopted, ItemResult, Progress, Redo, RunOptions, Stage, StageReport, StageWorker, Why, plan_only,
+                      run_stage)
 from ..errors import EXAMPLE_ERRORS, SpecError, UserError
 from ..executors import ProcessExecutor, Resources
 from ..extras import missing
@@ -194,7 +195,7 @@ class RenderStage(Stage):
         path = self.root / item_id
         return path.is_dir() and not B.check_bundle(path, deep=False)
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | Redo | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> Adopted | Redo | None:
         """A bundle rendered before ledgers existed counts when complete and rendered at this preset (the old
         rule); otherwise it is rendered again, with a warning saying why."""
         path = self.root / item_id
@@ -203,7 +204,7 @@ class RenderStage(Stage):
         problems = B.check_bundle(path, deep=False)
         rendered_at = _metadata(path).get("preset")
         if not problems and rendered_at == self.quality:
-            return {"preset": rendered_at}
+            return Adopted({"preset": rendered_at}, f"a complete bundle rendered at the '{rendered_at}' preset")
         why = (f"is damaged ({'; '.join(problems[:3])})" if problems else
                f"was rendered at the '{rendered_at}' preset, not '{self.quality}'")
         log.warning("example %s: the bundle in %s %s; rendering it again", item_id, path, why)

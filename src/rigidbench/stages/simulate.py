@@ -17,7 +17,7 @@ from typing import Any, Sequence
 
 from ..blender.physics import CONTACTS_FILE, SCENE_SPEC_FILE, TRAJECTORIES_FILE, simulate_to_dir
 from ..config import Registry, plain, registry as load_registry
-from ..driver import ItemResult, Progress, RunOptions, Stage, StageReport, StageWorker, run_stage
+from ..driver import Adopted, ItemResult, Progress, RunOptions, Stage, StageReport, StageWorker, run_stage
 from ..errors import EXAMPLE_ERRORS
 from ..hashing import digest
 from ..manifest import ManifestRow
@@ -95,10 +95,11 @@ class SimulateStage(Stage):
     def intact(self, item_id: str) -> bool:
         return all((self.root / item_id / name).is_file() for name in SIMULATION_FILES)
 
-    def adopt(self, item_id: str, payload: Any, key: str) -> dict | None:
+    def adopt(self, item_id: str, payload: Any, key: str) -> Adopted | None:
         """An example simulated before ledgers existed counts when its contacts.json is there (the old rule:
         written last, inside one directory renamed into place)."""
-        return {} if (self.root / item_id / CONTACTS_FILE).is_file() else None
+        done = (self.root / item_id / CONTACTS_FILE).is_file()
+        return Adopted({}, f"a simulation with its {CONTACTS_FILE}") if done else None
 
 
 def simulate_stage(stage: SimulateStage, run: RunOptions = RunOptions()) -> StageReport:

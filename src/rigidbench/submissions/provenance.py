@@ -19,7 +19,7 @@ from pathlib import Path
 import rigidbench
 
 from ..errors import UserError
-from ..folders import GENERATION_FILE, RunFolder
+from ..folders import GENERATION_FILE, RunFolder, split_sample_item
 from ..hashing import digest, file_digest
 from ..jsonio import DamagedJSON, load_json, read_json
 
@@ -69,7 +69,7 @@ def counted_ids(results: dict, folder: RunFolder) -> list[str]:
                                                                                    dict) else None
     if isinstance(per_example, dict):
         return sorted(per_example)
-    return [p.stem for p in folder.records()]
+    return list(dict.fromkeys(split_sample_item(p.stem)[0] for p in folder.records()))  # examples, not samples
 
 
 # -- the pieces ------------------------------------------------------------------------------------------------

@@ -94,6 +94,11 @@ def run_problems(files: RunFiles, config_dirs: Iterable[str | Path] = ()) -> lis
         problems.append(f"{where}: {perception} perception: the measurements read the reference's own "
                         f"{'ground truth' if perception == 'gt' else perception + ' outputs'}, not the video; "
                         f"evaluate again with --perception {PERCEPTION}")
+    per_example = ((results.get("samples") or {}).get("samples_per_example") or {}).get("max") or 1
+    if per_example > 1:  # the bundle and the board hold one record per example: sample records are not carried yet
+        problems.append(f"{where}: several samples per example (up to {per_example}): a submission holds one "
+                        "generation per example; evaluate a predictions folder with one video per example "
+                        "(<id>.mp4, no <id>.s<k>.mp4) and submit that run")
     skipped = results.get("skipped_metrics") or {}
     if skipped:
         problems.append(f"{where}: measurements skipped: " + "; ".join(f"{m} ({why})" for m, why in skipped.items())
