@@ -107,7 +107,12 @@ def test_the_envelope_folder_holds_the_twins_their_scores_and_envelope_json(made
     assert doc["config"] == load_envelope().to_dict() and set(ENTRIES) < set(doc["config"])
     assert all(doc["config"][e]["reason"] for e in ENTRIES)
     assert doc["dataset"] == {"dataset": "rendered", "version": "bundle v1", "md5": None, "preset": "test"}
-    assert doc["examples"] == {i: {"status": "ok", "reason": None, "twins": TWINS} for i in IDS}
+    assert {i: {k: e[k] for k in ("status", "reason", "twins")} for i, e in doc["examples"].items()} == \
+        {i: {"status": "ok", "reason": None, "twins": TWINS} for i in IDS}
+    for entry in doc["examples"].values():  # the floor: a scale-0 twin, i.e. the reference itself, scored
+        floor = entry["floor"]
+        assert floor["iou"] == 1.0 and floor["ate"] == 0.0 and floor["chamfer"] == 0.0
+        assert set(floor) == {"iou", "centroid_l2", "chamfer", "ate", "ate3d", "si_mse"}  # geometry only
     for i in IDS:
         assert sorted(find_samples(env / "predictions", i)) == list(range(TWINS))
         for k in range(TWINS):

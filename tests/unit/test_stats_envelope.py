@@ -131,3 +131,22 @@ def test_width_table_is_the_median_width_per_task():
     assert table["chain"]["ate"] == pytest.approx(1.75)  # median of 3 and 0.5
     assert table["fall"]["iou"] == pytest.approx(0.1)
     assert width_table({"ate": (np.array([NAN]), np.array([NAN]))}, ["x"]) == {"x": {"ate": None}}
+
+
+def test_the_floor_raises_the_worse_bound_to_what_the_reference_itself_scores():
+    # ATE-3D-like: twins 1..5 (q95 4.8); the reference scored as a model gives 6 on this example (its own
+    # reconstruction error), so a value of 5.5 is no worse than a perfect prediction: inside, excess 0
+    twins = np.tile(np.arange(1.0, 6.0), (3, 1))
+    values = np.array([[5.5], [6.5], [5.5]])
+    floor = np.array([6.0, 6.0, NAN])  # the third example's floor is unknown: q95 alone
+    s = score_against_envelope(twins, values, higher_is_better=False, floor=floor)
+    np.testing.assert_allclose(s.bound, [6.0, 6.0, 4.8])
+    np.testing.assert_allclose(s.excess, [0.0, 0.5, 0.7])
+    np.testing.assert_array_equal(s.inside, [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(s.q95, [4.8, 4.8, 4.8])  # the twins' quantiles are reported as they are
+    # a floor better than q95 changes nothing; higher is better: the floor lowers q05
+    low = score_against_envelope(twins, values, higher_is_better=False, floor=np.zeros(3))
+    np.testing.assert_allclose(low.bound, [4.8, 4.8, 4.8])
+    high = score_against_envelope(twins, [[0.5], [0.5], [1.1]], higher_is_better=True, floor=[0.4, 2.0, NAN])
+    np.testing.assert_allclose(high.bound, [0.4, 1.2, 1.2])
+    np.testing.assert_allclose(high.excess, [0.0, 0.7, 0.1])

@@ -110,3 +110,16 @@ def test_stated_detectable_difference_is_detected_80_percent_of_the_time(k, betw
         boot_detected.append((lo > 0) | (hi < 0))
     assert 0.75 <= t_detected.mean() <= 0.85
     assert 0.75 <= np.concatenate(boot_detected).mean() <= 0.85
+
+
+def test_a_difference_out_of_reach_needs_no_number_of_examples():
+    # a difference that is a rounding error of the spread (a perfect score's 10%, 1e-16) asks for ~1e32 examples:
+    # None, as for a zero difference, not an endless search (the demo's report met this on the reference's L2)
+    from rigidbench.stats.power import MAX_EXAMPLES, examples_needed
+
+    assert examples_needed(1e-16, 0.01) is None
+    assert examples_needed(0.0, 0.01) is None
+    # just past the bound (normal approximation (z_a/2 + z_p)^2 var / d^2 = 7.85 var / d^2): None; just inside: a number
+    assert examples_needed(0.01, 2 * 0.01 ** 2 * MAX_EXAMPLES / 7.85) is None
+    assert 0.49 * MAX_EXAMPLES < examples_needed(0.01, 0.5 * 0.01 ** 2 * MAX_EXAMPLES / 7.85) < 0.51 * MAX_EXAMPLES
+    assert 2 <= examples_needed(0.1, 0.01) < 20  # an ordinary case still answers a small number

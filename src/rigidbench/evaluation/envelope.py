@@ -63,6 +63,7 @@ class Envelope:
     no_envelope: dict[str, str]
     dataset: dict | None = None
     skipped: dict[str, str] = field(default_factory=dict)
+    floor: dict[str, dict[str, float]] = field(default_factory=dict)  # id -> measurement -> the reference's own value
 
 
 def _load_document(path: Path, what: str) -> dict:
@@ -172,7 +173,9 @@ def read_envelope(env_dir: str | Path) -> Envelope:
                     examples=tuple(sorted(declared)), metrics=metrics,
                     twins={i: {m: t[m] for m in metrics} for i, t in twins.items()}, tasks=tasks,
                     partitions=partitions, no_envelope=no_envelope,
-                    dataset=dataset if isinstance(dataset, dict) else None, skipped=skipped)
+                    dataset=dataset if isinstance(dataset, dict) else None, skipped=skipped,
+                    floor={i: {m: float(v) for m, v in declared[i]["floor"].items() if isinstance(v, (int, float))}
+                           for i in twins if isinstance(declared[i].get("floor"), dict)})
 
 
 def _number(value: Any) -> float:
@@ -242,7 +245,8 @@ def envelope_block(envelope: Envelope, records: list[dict]) -> dict:
     for metric in envelope.metrics:
         twins = _padded([envelope.twins[i][metric] for i in ids])
         model = _padded([np.array([_number(samples[i][k].get(metric)) for k in sorted(samples[i])]) for i in ids])
-        scores = score_against_envelope(twins, model, METRICS[metric].higher_is_better)
+        floor = np.array([envelope.floor.get(i, {}).get(metric, np.nan) for i in ids], np.float64)
+        scores = score_against_envelope(twins, model, METRICS[metric].higher_is_better, floor)
         overall[metric] = summarize(scores)
         for groups, table in ((tasks, by_task), (parts, by_partition)):
             for group, summary in summarize_by(scores, groups).items():
@@ -260,6 +264,7 @@ def envelope_block(envelope: Envelope, records: list[dict]) -> dict:
 def _example_entry(scores: EnvelopeScores, e: int, k: int) -> dict:
     inside = scores.inside[e]
     return {"q05": _none(scores.q05[e]), "median": _none(scores.median[e]), "q95": _none(scores.q95[e]),
+            "bound": _none(scores.bound[e]),
             "twins": int(scores.twins[e]), "value": _none(scores.value[e]), "position": _none(scores.position[e]),
             "excess": _none(scores.excess[e]), "inside": None if math.isnan(inside) else bool(inside),
             "sample_positions": [_none(p) for p in scores.sample_positions[e, :k]]}

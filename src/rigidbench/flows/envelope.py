@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 PREDICTIONS_DIR = "predictions"
 RESIM_DIR = "resimulation"  # the rebuilt specs of imported examples and their re-simulation check
-RECONSTRUCTION_DIR = "reconstruction"  # imported examples: a twin at scale 0 and its scores (the floor)
+RECONSTRUCTION_DIR = "reconstruction"  # every example: a twin at scale 0 and its scores (the floor)
 DEFAULT_TWINS = 8
 MIN_SCORED_TWINS = 2  # fewer twins scored: the example has no envelope (``stats.envelope.MIN_TWINS``)
 #: What must agree for a run on some examples to keep the other examples of an existing envelope.json.
@@ -199,8 +199,9 @@ def make_envelope(data: str | Path, out_dir: str | Path, *, twins: int = DEFAULT
         options["spec_dir"] = str((env_dir / RESIM_DIR).resolve())
     targets = [i for i in ids if i in with_spec or i in rebuilt]
     predicted, scored = _twins(split_dir, env_dir, targets, options, int(twins), int(seed), run, ctx)
-    # the reconstruction floor: one twin at scale 0 of each imported example, scored like the others
-    reconstructed, floor_scored = _twins(split_dir, env_dir / RECONSTRUCTION_DIR, rebuilt, {**options, "scale": 0.0},
+    # the floor: one twin at scale 0 of each example (the reference itself re-made; for an imported example, its
+    # reconstruction), scored like the others: what each measurement gives a perfect prediction
+    reconstructed, floor_scored = _twins(split_dir, env_dir / RECONSTRUCTION_DIR, targets, {**options, "scale": 0.0},
                                          1, int(seed), run, ctx)
     for i in targets:
         done = _done(scored, i, int(twins))
@@ -212,8 +213,10 @@ def make_envelope(data: str | Path, out_dir: str | Path, *, twins: int = DEFAULT
                          reason=f"only {done} of {twins} twins were predicted and scored (see "
                                 f"{env_dir / PREDICTIONS_DIR / 'generation.json'} and "
                                 f"{env_dir / RUN_DIR / 'results.json'})")
+    for i in targets:
+        statuses[i]["floor"] = _zero_twin_scores(env_dir / RECONSTRUCTION_DIR / RUN_DIR, i)
     for i in rebuilt:
-        statuses[i]["reconstruction"]["zero_twin"] = _zero_twin_scores(env_dir / RECONSTRUCTION_DIR / RUN_DIR, i)
+        statuses[i]["reconstruction"]["zero_twin"] = statuses[i]["floor"]
     examples = {**previous, **statuses}
     doc["dataset"] = set_identity([split_dir / i for i in examples if (split_dir / i).is_dir()])
     doc["examples"] = dict(sorted(examples.items()))

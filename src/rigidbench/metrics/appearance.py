@@ -225,7 +225,10 @@ def rgb_to_lpips_input(rgb: np.ndarray, device: str | None = None):
     """rgb: (B, H, W, 3) uint8. Returns a (B, 3, H, W) float32 torch tensor in [-1, 1]."""
     import torch
 
-    x = torch.from_numpy(np.ascontiguousarray(rgb)).to(device=device)
+    rgb = np.ascontiguousarray(rgb)
+    if not rgb.flags.writeable:  # a shared read-only view (the example's reference side): torch wants its own
+        rgb = rgb.copy()
+    x = torch.from_numpy(rgb).to(device=device)
     return x.permute(0, 3, 1, 2).float().div_(127.5).sub_(1.0)
 
 

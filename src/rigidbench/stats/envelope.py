@@ -42,9 +42,10 @@ class EnvelopeScores:
 
     q05, median, q95: the twins' quantiles (NaN: no envelope); twins: finite twins per example (int);
     value: the model's per-example mean of finite samples; position: the fraction of finite twins the value
-    beats (ties count one half), 0..1; sample_positions (E, K): the same for each sample; excess: how far
-    the value lies beyond the envelope on the worse side (0 inside or on the better side); inside: 1.0 when
-    q05 <= value <= q95, 0.0 when not, NaN when undefined (no envelope or no value)."""
+    beats (ties count one half), 0..1; sample_positions (E, K): the same for each sample; bound: the envelope's
+    worse-side bound, q95 (q05 for a higher-is-better measurement) or the measurement's floor on the example when
+    that is worse (``score_against_envelope``); excess: how far the value lies beyond ``bound`` (0 inside or on the
+    better side); inside: 1.0 when the excess is 0, 0.0 when not, NaN when undefined (no envelope or no value)."""
 
     q05: np.ndarray
     median: np.ndarray
@@ -55,6 +56,7 @@ class EnvelopeScores:
     sample_positions: np.ndarray
     excess: np.ndarray
     inside: np.ndarray
+    bound: np.ndarray | None = None
 
     @property
     def has_envelope(self) -> np.ndarray:
@@ -116,19 +118,40 @@ def inside(values, q05, q95, higher_is_better: bool) -> np.ndarray:
     return np.where(np.isnan(v) | np.isnan(lo) | np.isnan(hi), np.nan, flag)
 
 
-def score_against_envelope(twins, samples, higher_is_better: bool) -> EnvelopeScores:
+def worse_bound(q05, q95, floor, higher_is_better: bool) -> np.ndarray:
+    """The envelope's bound on the worse side: q95 (lower is better) or q05 (higher is better), or the
+    measurement's floor on the example (what it gives the reference itself, scored as a model) where that is
+    worse; a NaN floor is ignored. A measurement that reconstructs what it compares (ATE-3D from depth and
+    masks) does not give the reference 0, and an error the measurement makes on a perfect prediction is no
+    physical error."""
+    lo, hi = np.asarray(q05, np.float64), np.asarray(q95, np.float64)
+    if floor is None:
+        return lo if higher_is_better else hi
+    f = np.broadcast_to(np.asarray(floor, np.float64), hi.shape)
+    with np.errstate(invalid="ignore"):
+        if higher_is_better:
+            return np.where(np.isnan(lo), np.nan, np.fmin(lo, f))
+        return np.where(np.isnan(hi), np.nan, np.fmax(hi, f))
+
+
+def score_against_envelope(twins, samples, higher_is_better: bool, floor=None) -> EnvelopeScores:
     """twins: (E, N) the twins' scores of one measurement; samples: (E, K) the model's scores of the same
-    examples (NaN: missing; pad examples with fewer samples with NaN). Returns an ``EnvelopeScores``."""
+    examples (NaN: missing; pad examples with fewer samples with NaN); floor: (E,) the measurement's value for
+    the reference itself on each example (NaN or None: not known), which the worse-side bound never goes
+    below (``worse_bound``). Returns an ``EnvelopeScores``."""
     arr = _as_2d(twins, "twins")
     smp = _as_2d(samples, "samples")
     if smp.shape[0] != arr.shape[0]:
         raise ValueError(f"twins and samples must have the same examples, got {arr.shape[0]} and {smp.shape[0]}")
     q05, med, q95, n = twin_quantiles(arr)
     value = per_example_means(smp)
+    bound = worse_bound(q05, q95, floor, higher_is_better)
+    lo, hi = (bound, q95) if higher_is_better else (q05, bound)
     return EnvelopeScores(q05=q05, median=med, q95=q95, twins=n, value=value,
                           position=positions(arr, value, higher_is_better),
                           sample_positions=positions(arr, smp, higher_is_better),
-                          excess=excess(value, q05, q95, higher_is_better), inside=inside(value, q05, q95, higher_is_better))
+                          excess=excess(value, lo, hi, higher_is_better), inside=inside(value, lo, hi, higher_is_better),
+                          bound=bound)
 
 
 def summarize(scores: EnvelopeScores, mask=None) -> dict:

@@ -139,10 +139,15 @@ def minimum_detectable_difference(
     return float(nc * unit)
 
 
+#: More examples than any benchmark could hold: ``examples_needed`` answers None (out of reach) beyond it.
+MAX_EXAMPLES = 10**7
+
+
 def examples_needed(
     difference: float, difference_variance: float, alpha: float = 0.05, power: float = 0.8
 ) -> int | None:
-    """Returns the smallest E >= 2 whose paired t-test detects `difference` with probability `power`; None if never."""
+    """Returns the smallest E >= 2 whose paired t-test detects `difference` with probability `power`; None if never
+    or only beyond MAX_EXAMPLES (e.g. a difference that is a rounding error of the scores' spread)."""
     from scipy import stats as sps
 
     _check_test(2, alpha, power)
@@ -151,7 +156,10 @@ def examples_needed(
     if difference_variance == 0:
         return 2
     z = sps.norm.ppf(1.0 - alpha / 2.0) + sps.norm.ppf(power)
-    n = max(2, math.ceil((z * z) * difference_variance / (difference * difference)))
+    approx = (z * z) * difference_variance / (difference * difference)
+    if not approx <= MAX_EXAMPLES:
+        return None
+    n = max(2, math.ceil(approx))
     while paired_test_power(difference, difference_variance, n, alpha) < power:
         n += 1
     while n > 2 and paired_test_power(difference, difference_variance, n - 1, alpha) >= power:
