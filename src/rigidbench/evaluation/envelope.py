@@ -213,7 +213,7 @@ def _none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def _padded(rows: Sequence[np.ndarray]) -> np.ndarray:
+def padded(rows: Sequence[np.ndarray]) -> np.ndarray:
     """Rows of varying length -> (len(rows), longest) float64, NaN-padded."""
     out = np.full((len(rows), max((len(r) for r in rows), default=0) or 1), np.nan)
     for i, row in enumerate(rows):
@@ -243,8 +243,8 @@ def envelope_block(envelope: Envelope, records: list[dict]) -> dict:
     by_partition: dict[str, dict] = defaultdict(dict)
     bands: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for metric in envelope.metrics:
-        twins = _padded([envelope.twins[i][metric] for i in ids])
-        model = _padded([np.array([_number(samples[i][k].get(metric)) for k in sorted(samples[i])]) for i in ids])
+        twins = padded([envelope.twins[i][metric] for i in ids])
+        model = padded([np.array([_number(samples[i][k].get(metric)) for k in sorted(samples[i])]) for i in ids])
         floor = np.array([envelope.floor.get(i, {}).get(metric, np.nan) for i in ids], np.float64)
         scores = score_against_envelope(twins, model, METRICS[metric].higher_is_better, floor)
         overall[metric] = summarize(scores)

@@ -23,8 +23,9 @@ within the stated tolerance gets geometry-only twins of the rebuilt spec (its RG
 our meshes stand in for the published assets); one that does not gets "no envelope" with the measured drift.
 Twins of an imported example are scored against the PUBLISHED reference, so their scores include the
 reconstruction's own error: envelope.json records per such example its "reconstruction", the re-simulation's
-error against the published trajectory and the scores of a twin at scale 0 (``ENV/reconstruction/``, predicted
-and scored by the same two stages), the floor under every twin of that example.
+error against the published trajectory. Every example, imported or rendered, also gets one twin at scale 0
+(``ENV/reconstruction/``, predicted and scored by the same two stages): its scores are the example's "floor", the
+value each measurement gives a perfect prediction, below which the envelope's worse-side bound never goes.
 """
 
 from __future__ import annotations
@@ -34,13 +35,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..context import RunContext
 from ..datasets.resimulate import resimulate_published
 from ..driver import RunOptions, Selection, StageReport
 from ..errors import UserError
-from ..evaluation.envelope import ENVELOPE_FILE, RUN_DIR, read_envelope
+from ..evaluation.envelope import ENVELOPE_FILE, RUN_DIR, padded, read_envelope
 from ..executors import Shard
 from ..folders import SPEC_FILE, RunFolder, sample_item
 from ..groundtruth.bundle import bundle_dirs, is_imported, resolve_split_dir, set_identity
@@ -239,11 +238,6 @@ def envelope_widths(env_dir: Path) -> dict[str, dict[str, float | None]]:
         return {}
     bands = {}
     for metric in envelope.metrics:
-        width = max(len(envelope.twins[i][metric]) for i in ids)
-        rows = np.full((len(ids), width), np.nan)
-        for e, i in enumerate(ids):
-            values = envelope.twins[i][metric]
-            rows[e, :len(values)] = values
-        q05, _, q95, _ = twin_quantiles(rows)
+        q05, _, q95, _ = twin_quantiles(padded([envelope.twins[i][metric] for i in ids]))
         bands[metric] = (q05, q95)
     return width_table(bands, [envelope.tasks.get(i, "?") for i in ids])
